@@ -1,0 +1,146 @@
+"""An ANYmal D-like quadruped with a 6-DoF DynaArm-like arm and a 2F-140-like gripper.
+
+Built from primitives with published numbers (see ``../shared/DESIGN.md``; sources:
+ANYbotics ANYmal D and DynaArm data sheets, Robotiq 2F-140 manual). Numbers marked
+"ours" are not published and were chosen for a plausible, stable model.
+
+With the ideal low-level executor (``pnp.executor``) the trunk rides on actuated
+planar joints (x, y, yaw) at the standing height and the legs are rigid geometry,
+shown in the standing pose; they collide with the box but not with the floor.
+"""
+from __future__ import annotations
+
+import numpy as np
+from dm_control import composer, mjcf
+
+# --- ANYmal D (published) ---
+TRUNK_MASS = 18.3  # kg
+LEG_MASS = 8.3  # kg per leg (51.5 kg total without payload)
+HAA_POS = (0.304, 0.109)  # m, hip abduction joints at (+-x, +-y, 0)
+HFE_POS = (0.373, 0.115)  # m, hip flexion joints
+THIGH_LEN = 0.285  # m
+SHANK_LEN = 0.39  # m, knee to foot centre
+FOOT_RADIUS = 0.0315  # m
+HFE_STAND, KFE_STAND = 0.4, -0.8  # rad, standing pose (front legs; hind mirrored)
+STANDING_HEIGHT = 0.59  # m, trunk centre above the floor
+TRUNK_HALF = (0.30, 0.12, 0.09)  # ours: a box enclosing the published hip positions
+
+# --- DynaArm (published lengths, torque and speed; masses split by us) ---
+ARM_MOUNT = (0.25, 0.0, TRUNK_HALF[2])  # ours: on the front of the trunk's top plate
+SHOULDER_HEIGHT = 0.09  # m (published 0.06-0.11)
+UPPER_ARM = 0.41  # m
+FOREARM = 0.41  # m (published 0.41-0.42)
+WRIST = 0.12  # m
+ARM_TORQUE = 40.0  # N m
+ARM_SPEED = 4.0  # rad/s
+ARM_LINK_MASSES = (2.0, 3.0, 1.0, 1.5, 1.0, 0.5)  # ours, ~9 kg + 1 kg gripper = ~10-11 kg
+ARM_JOINTS = ("arm_j1", "arm_j2", "arm_j3", "arm_j4", "arm_j5", "arm_j6")
+ARM_RANGES = ((-2.8, 2.8), (-1.6, 2.6), (-2.8, 0.2), (-3.0, 3.0), (-2.6, 2.6), (-3.1, 3.1))  # ours
+# Default arm pose (ours, solved by IK): gripper pointing down in front of the trunk.
+ARM_DEFAULT = (0.0, 1.23, -1.71, 0.0, 2.05, 0.0)  # EE at (0.75, 0, -0.30) in the base frame
+
+# --- Robotiq 2F-140 (published stroke and pads) ---
+GRIPPER_MASS = 1.0  # kg
+FINGER_STROKE = 0.07  # m per finger (140 mm total)
+PAD_HALF = (0.015, 0.008, 0.035)  # pad 0.03 x 0.07 m; thickness ours
+GRIPPER_LEN = 0.16  # ours: flange to the centre between the pads
+FINGER_FORCE = 100.0  # N, ours
+FINGER_KP = 1500.0  # N/m, ours
+
+# Contact groups: floor 1, robot 2, box 4 (box collides with both; robot not with floor).
+ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 4
+
+
+class Quadruped(composer.Entity):
+    """One-armed quadruped; ``name`` prefixes every element (``robot0/arm_j1``)."""
+
+    def _build(self, name: str = "robot", rgba=(0.85, 0.45, 0.1, 1)):
+        self._mjcf_root = root = mjcf.RootElement(model=name)
+        root.default.geom.set_attributes(
+            contype=ROBOT_CONTYPE, conaffinity=ROBOT_CONAFFINITY, rgba=rgba, friction=(1.0, 0.005, 0.0001)
+        )
+        base = root.worldbody.add("body", name="base", pos=(0, 0, STANDING_HEIGHT))
+        # Ideal executor: planar joints, velocity-actuated (see pnp.executor).
+        for jn, typ, axis in (("base_x", "slide", (1, 0, 0)), ("base_y", "slide", (0, 1, 0)), ("base_yaw", "hinge", (0, 0, 1))):
+            base.add("joint", name=jn, type=typ, axis=axis, damping=0.0, armature=1.0)
+        base.add("geom", name="trunk", type="box", size=TRUNK_HALF, mass=TRUNK_MASS)
+        base.add("site", name="base_site", size=(0.01,), rgba=(0, 0, 0, 0))
+        self._add_legs(base)
+        self._add_arm(base)
+        for jn in ("base_x", "base_y"):
+            root.actuator.add("velocity", name=jn, joint=jn, kv=3000.0, forcerange=(-3000, 3000), forcelimited=True)
+        root.actuator.add("velocity", name="base_yaw", joint="base_yaw", kv=800.0, forcerange=(-800, 800), forcelimited=True)
+        for jn, (lo, hi) in zip(ARM_JOINTS, ARM_RANGES):
+            root.actuator.add(
+                "position", name=jn, joint=jn, kp=600.0, kv=40.0, ctrlrange=(lo, hi), ctrllimited=True,
+                forcerange=(-ARM_TORQUE, ARM_TORQUE), forcelimited=True,
+            )
+        for fn in ("finger_l", "finger_r"):
+            root.actuator.add(
+                "position", name=fn, joint=fn, kp=FINGER_KP, kv=30.0, ctrlrange=(0, FINGER_STROKE), ctrllimited=True,
+                forcerange=(-FINGER_FORCE, FINGER_FORCE), forcelimited=True,
+            )
+        for side in ("l", "r"):
+            root.sensor.add("touch", name=f"pad_{side}_touch", site=f"pad_{side}_site")
+
+    def _add_legs(self, base):
+        # Legs as rigid capsules in the standing pose: visual plus box collisions only.
+        for sx, fore in ((1, "F"), (-1, "H")):
+            for sy, side in ((1, "L"), (-1, "R")):
+                hip = np.array([sx * HFE_POS[0], sy * HFE_POS[1], 0.0])
+                # Front knees point back, hind knees forward (ANYmal's X configuration).
+                hfe, kfe = sx * HFE_STAND, sx * KFE_STAND
+                knee = hip + THIGH_LEN * np.array([-np.sin(hfe), 0, -np.cos(hfe)])
+                foot = knee + SHANK_LEN * np.array([-np.sin(hfe + kfe), 0, -np.cos(hfe + kfe)])
+                leg = f"{fore}{side}"
+                m = LEG_MASS / 2
+                base.add("geom", name=f"{leg}_thigh", type="capsule", fromto=(*hip, *knee), size=(0.045,), mass=m)
+                base.add("geom", name=f"{leg}_shank", type="capsule", fromto=(*knee, *foot), size=(0.035,), mass=m)
+                base.add("geom", name=f"{leg}_foot", type="sphere", pos=foot, size=(FOOT_RADIUS,), mass=0.1)
+
+    def _add_arm(self, base):
+        r = ARM_RANGES
+        m = ARM_LINK_MASSES
+        # gravcomp: the LL controller's gravity feed-forward for the arm's own links.
+        j = dict(type="hinge", armature=0.05, damping=1.0, limited=True)
+        l1 = base.add("body", name="arm_link1", pos=ARM_MOUNT, gravcomp=1)
+        l1.add("joint", name="arm_j1", axis=(0, 0, 1), range=r[0], **j)
+        l1.add("geom", type="cylinder", fromto=(0, 0, 0, 0, 0, SHOULDER_HEIGHT), size=(0.055,), mass=m[0])
+        l2 = l1.add("body", name="arm_link2", pos=(0, 0, SHOULDER_HEIGHT), gravcomp=1)
+        l2.add("joint", name="arm_j2", axis=(0, 1, 0), range=r[1], **j)
+        l2.add("geom", type="capsule", fromto=(0, 0, 0, UPPER_ARM, 0, 0), size=(0.045,), mass=m[1])
+        l3 = l2.add("body", name="arm_link3", pos=(UPPER_ARM, 0, 0), gravcomp=1)
+        l3.add("joint", name="arm_j3", axis=(0, 1, 0), range=r[2], **j)
+        l3.add("geom", type="capsule", fromto=(0, 0, 0, 0.1, 0, 0), size=(0.04,), mass=m[2])
+        l4 = l3.add("body", name="arm_link4", pos=(0.1, 0, 0), gravcomp=1)
+        l4.add("joint", name="arm_j4", axis=(1, 0, 0), range=r[3], **j)
+        l4.add("geom", type="capsule", fromto=(0, 0, 0, FOREARM - 0.1, 0, 0), size=(0.035,), mass=m[3])
+        l5 = l4.add("body", name="arm_link5", pos=(FOREARM - 0.1, 0, 0), gravcomp=1)
+        l5.add("joint", name="arm_j5", axis=(0, 1, 0), range=r[4], **j)
+        l5.add("geom", type="capsule", fromto=(0, 0, 0, WRIST, 0, 0), size=(0.03,), mass=m[4])
+        l6 = l5.add("body", name="arm_link6", pos=(WRIST, 0, 0), gravcomp=1)
+        l6.add("joint", name="arm_j6", axis=(1, 0, 0), range=r[5], **j)
+        self._add_gripper(l6)
+
+    def _add_gripper(self, flange):
+        # Gripper frame: x along the approach direction; fingers close along y.
+        g = flange.add("body", name="gripper", pos=(0, 0, 0), gravcomp=1)
+        g.add("geom", name="palm", type="box", pos=(0.04, 0, 0), size=(0.04, 0.075, 0.03), mass=GRIPPER_MASS * 0.7)
+        g.add("site", name="ee_site", pos=(GRIPPER_LEN, 0, 0), size=(0.012,), rgba=(1, 0, 0, 0.6))
+        fx = GRIPPER_LEN
+        for side, sgn in (("l", 1), ("r", -1)):
+            f = g.add("body", name=f"finger_{side}_body", pos=(fx, 0, 0))
+            # q = 0 fully closed (pads touch at y = 0); q = stroke fully open.
+            f.add("joint", name=f"finger_{side}", type="slide", axis=(0, sgn, 0), range=(0, FINGER_STROKE), armature=0.01, damping=2.0)
+            f.add(
+                "geom", name=f"pad_{side}", type="box", pos=(0, sgn * PAD_HALF[1], 0),
+                size=(PAD_HALF[2], PAD_HALF[1], PAD_HALF[0]), mass=GRIPPER_MASS * 0.15,
+                friction=(1.5, 0.01, 0.001), condim=4, rgba=(0.2, 0.2, 0.2, 1),
+            )
+            f.add("geom", type="box", pos=(-0.06, sgn * PAD_HALF[1], 0), size=(0.025, PAD_HALF[1], 0.012), mass=0.01)
+            f.add("site", name=f"pad_{side}_site", type="box", pos=(0, sgn * PAD_HALF[1], 0),
+                  size=(PAD_HALF[2] + 0.003, PAD_HALF[1] + 0.004, PAD_HALF[0] + 0.003), rgba=(0, 1, 0, 0.0))
+
+    @property
+    def mjcf_model(self):
+        return self._mjcf_root

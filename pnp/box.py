@@ -83,3 +83,57 @@ class HandleBox(composer.Entity):
     @property
     def mjcf_model(self):
         return self._mjcf_root
+
+
+def _box_inertia(m, half):
+    a, b, c = half
+    return m / 3.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+def _capsule_y_inertia(m, r, hl):
+    # Capsule along y approximated as a solid cylinder of length 2 (hl + r): 1 mm-scale error.
+    length = 2 * (hl + r)
+    ax = 0.5 * m * r * r
+    tr = m * (3 * r * r + length * length) / 12
+    return np.array([tr, ax, tr])
+
+
+def box_geometry(asset: BoxAsset, geom_names: list[str]) -> dict[str, np.ndarray]:
+    """Per-geom size, pos, rbound, aabb and the body's mass, com and inertia for ``asset``.
+
+    Lets one compiled model be resized per world (``pnp.physics``) without recompiling;
+    the tests compare it with a model compiled from that asset.
+    """
+    a, b, c = asset.size
+    lay = handle_layout(asset.size)
+    hl, ph = lay["half_len"], lay["post_half_h"]
+    geoms = {"shell": (np.array([a / 2, b / 2, c / 2]), np.zeros(3), asset.mass - 2 * HANDLE_MASS, "box")}
+    for i, centre in enumerate(lay["centres"]):
+        geoms[f"handle{i}"] = (np.array([HANDLE_RADIUS, hl, 0.0]), centre, HANDLE_MASS * 0.6, "capsule")
+        for k, sy in enumerate((1, -1)):
+            pos = np.array([centre[0], sy * (hl + 0.008), lay["post_z"]])
+            geoms[f"handle{i}_post{k}"] = (np.array([0.008, 0.008, ph]), pos, HANDLE_MASS * 0.2, "box")
+    size, pos, rbound, aabb = [], [], [], []
+    total, com, inertia = 0.0, np.zeros(3), np.zeros(3)
+    for name in geom_names:
+        s, p, m, kind = geoms[name.split("/")[-1]]
+        size.append(s)
+        pos.append(p)
+        if kind == "box":
+            rbound.append(np.linalg.norm(s))
+            aabb.append(np.concatenate([np.zeros(3), s]))
+        else:
+            rbound.append(s[0] + s[1])
+            aabb.append(np.array([0, 0, 0, s[0], s[0], s[0] + s[1]]))
+        total += m
+        com += m * p
+    com /= total
+    for name in geom_names:
+        s, p, m, kind = geoms[name.split("/")[-1]]
+        own = _box_inertia(m, s) if kind == "box" else _capsule_y_inertia(m, s[0], s[1])
+        d = p - com
+        inertia += own + m * (d @ d - d * d)  # parallel axis, diagonal part (symmetric body)
+    return {
+        "size": np.array(size), "pos": np.array(pos), "rbound": np.array(rbound), "aabb": np.array(aabb),
+        "mass": total, "com": com, "inertia": inertia,
+    }

@@ -1,0 +1,185 @@
+"""Batched pick-and-place TorchRL environment: N worlds, one or two robots.
+
+Keys (multi-agent group ``"agents"``, A robots):
+  ("agents", "action")            [N, A, 8]  base vx, vy (m/s), yaw rate (rad/s), EE x, y, z
+                                              (m, base frame), EE yaw (rad), grasp probability
+  ("agents", "observation")       [N, A, 74] ego | goal | object | neighbour, concatenated
+  ("agents", "ego"|"goal"|"object"|"neighbour")  the same blocks, named
+  ("agents", "reward_terms")      [N, A, T]  Table II + fixed terms (``pnp.terms``)
+  ("agents", "stage_conditions")  [N, A, 6]  forward condition of each stage edge
+  ("agents", "reward")            [N, A, 1]  default reward: terms at mu_j, no curriculum
+  ("agents", "action_clipped")    [N, A]     the action was out of bounds and clipped
+  "success", "diverged"           [N, 1]     episode succeeded / physics diverged and reset
+  "done", "terminated", "truncated" [N, 1]   success or fall / 45 s or divergence
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from pnp.backend import Backend, MujocoBackend
+from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
+from pnp.layout import sample_layout
+from pnp.task import (
+    ACTION_HIGH, ACTION_LOW, EPISODE_S, HL_DT, LIFT_HEIGHT, OBS_BLOCKS, default_reward, geometry, observations,
+    reward_terms, stage_conditions,
+)
+from pnp.terms import CONDITIONS, REWARD_TERMS
+
+BLOCKS = tuple(OBS_BLOCKS)
+
+
+class PnPEnv(EnvBase):
+    """Pick-and-place with ``num_robots`` in 1 or 2, on ``backend`` "mujoco" or "kinematic"."""
+
+    batch_locked = True
+
+    def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
+                 box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
+                 device="cpu"):
+        if num_robots not in (1, 2):
+            raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
+        if num_worlds < 1:
+            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
+        super().__init__(batch_size=torch.Size([num_worlds]), device=device)
+        self.num_worlds, self.num_robots = num_worlds, num_robots
+        self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
+        self.backend = self._make_backend(backend, nthread)
+        self.max_steps = int(round(EPISODE_S / HL_DT))
+        self._make_specs()
+        N, R = num_worlds, num_robots
+        self._goal = torch.zeros(N, 2)
+        self._init_goal_dist = torch.ones(N)
+        self._last_action = self._neutral_action().expand(N, R, 8).clone()
+        self._steps = torch.zeros(N, dtype=torch.long)
+        self._was_lifted = torch.zeros(N, dtype=torch.bool)
+        self.clipped_count = 0  # (world, robot) actions clipped since construction
+        self.diverged_count = 0  # worlds reset after a physics divergence
+        self._set_seed(seed)
+        self._reset_worlds(torch.arange(N))
+
+    def _make_backend(self, backend, nthread) -> Backend:
+        if isinstance(backend, Backend):
+            return backend
+        if backend == "mujoco":
+            return MujocoBackend(self.num_worlds, self.num_robots, self.box_assets[0], nthread=nthread)
+        if backend == "kinematic":
+            from pnp.kinematic import KinematicBackend  # optional second backend
+
+            return KinematicBackend(self.num_worlds, self.num_robots)
+        raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
+
+    # --- specs -------------------------------------------------------------------------
+    def _make_specs(self):
+        R = self.num_robots
+        agents = lambda d: Composite(d, shape=(R,))  # noqa: E731
+        self.full_action_spec_unbatched = Composite({"agents": agents({
+            "action": Bounded(torch.tensor(ACTION_LOW).expand(R, 8), torch.tensor(ACTION_HIGH).expand(R, 8), shape=(R, 8)),
+        })})
+        obs = {k: Unbounded(shape=(R, n)) for k, n in OBS_BLOCKS.items()}
+        obs["observation"] = Unbounded(shape=(R, sum(OBS_BLOCKS.values())))
+        obs["reward_terms"] = Unbounded(shape=(R, len(REWARD_TERMS)))
+        obs["stage_conditions"] = Binary(n=len(CONDITIONS), shape=(R, len(CONDITIONS)), dtype=torch.bool)
+        obs["action_clipped"] = Categorical(2, shape=(R,), dtype=torch.bool)
+        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool)  # noqa: E731
+        self.full_observation_spec_unbatched = Composite({"agents": agents(obs), "success": flag(), "diverged": flag()})
+        self.full_reward_spec_unbatched = Composite({"agents": agents({"reward": Unbounded(shape=(R, 1))})})
+        self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
+
+    def _neutral_action(self):
+        lo, hi = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
+        a = torch.zeros(8)
+        a[3:6] = torch.tensor([0.75, 0.0, -0.30])  # the default EE pose
+        return a.clamp(lo, hi)
+
+    # --- EnvBase hooks -------------------------------------------------------------------
+    def _set_seed(self, seed: int | None):
+        self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
+
+    def _reset_worlds(self, ids: torch.Tensor):
+        layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets)
+        self.backend.reset(ids, layout)
+        self._goal[ids] = 0.0
+        self._init_goal_dist[ids] = layout.box_xy_yaw[:, :2].norm(dim=-1)
+        self._last_action[ids] = self._neutral_action()
+        self._steps[ids] = 0
+        self._was_lifted[ids] = False
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_worlds)
+        ids = torch.arange(self.num_worlds) if mask is None else mask.nonzero().squeeze(-1)
+        if len(ids):
+            self._reset_worlds(ids)
+        out = self._observe(self._last_action, self._last_action)
+        zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
+        out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
+                    "success": zeros.clone(), "diverged": zeros.clone()})
+        out.del_(("agents", "reward"))
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action, clipped = self._check_action(tensordict.get(("agents", "action")))
+        diverged = self.backend.step(action)
+        if diverged.any():
+            # Reset the diverged worlds alone; the others carry on. They end as truncated.
+            ids = diverged.nonzero().squeeze(-1)
+            self.diverged_count += len(ids)
+            self._reset_worlds(ids)
+            action = torch.where(diverged[:, None, None], self._last_action, action)
+        self._steps += 1
+        out = self._observe(action, self._last_action)
+        self._last_action = action
+        cond = out.get(("agents", "stage_conditions"))
+        self._was_lifted |= (cond[..., 2]).any(-1)
+        success = self._was_lifted & cond[..., 5].all(-1)
+        fell = out.get(("agents", "reward_terms"))[..., REWARD_TERMS.index("fall")].bool().any(-1)
+        terminated = (success | fell).unsqueeze(-1)
+        truncated = ((self._steps >= self.max_steps) | diverged).unsqueeze(-1)
+        out.set(("agents", "action_clipped"), clipped)
+        out.update({"terminated": terminated, "truncated": truncated & ~terminated, "done": terminated | truncated,
+                    "success": success.unsqueeze(-1), "diverged": diverged.unsqueeze(-1)})
+        return out
+
+    def _check_action(self, action: torch.Tensor):
+        expected = (self.num_worlds, self.num_robots, 8)
+        if action is None:
+            raise KeyError("missing ('agents', 'action') in the input tensordict")
+        if tuple(action.shape) != expected:
+            raise ValueError(f"('agents', 'action') has shape {tuple(action.shape)}, expected {expected}")
+        bad = ~torch.isfinite(action).all(-1).all(-1)
+        if bad.any():
+            worlds = bad.nonzero().squeeze(-1).tolist()
+            raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {worlds}")
+        action = action.float()
+        lo, hi = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
+        clipped_action = torch.max(torch.min(action, hi), lo)
+        clipped = (clipped_action != action).any(-1)
+        self.clipped_count += int(clipped.sum())
+        return clipped_action, clipped
+
+    def _observe(self, action, last_action) -> TensorDict:
+        s = self.backend.state(self._goal, self._init_goal_dist, action[..., 7])
+        g = geometry(s)
+        cond = stage_conditions(s, g)
+        terms = reward_terms(s, g, action, last_action, cond)
+        blocks = observations(s, g, action)
+        agents = {k: blocks[k] for k in BLOCKS}
+        agents["observation"] = torch.cat([blocks[k] for k in BLOCKS], -1)
+        agents.update(reward_terms=terms, stage_conditions=cond, reward=default_reward(terms),
+                      action_clipped=torch.zeros(self.num_worlds, self.num_robots, dtype=torch.bool))
+        return TensorDict({"agents": TensorDict(agents, batch_size=(self.num_worlds, self.num_robots))},
+                          batch_size=(self.num_worlds,))
+
+    # --- extras ------------------------------------------------------------------------------
+    def push_box(self, world: int, force) -> None:
+        """Apply an external wrench (N, N m; world frame) to one world's box for one step."""
+        self.backend.push(world, np.asarray(force, dtype=np.float64))
+
+    def close(self, *, raise_if_closed: bool = True):
+        self.backend.close()
+        super().close(raise_if_closed=raise_if_closed)

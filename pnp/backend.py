@@ -1,0 +1,147 @@
+"""Simulation backends behind the PnP environment, and the episode layout they reset to.
+
+A backend owns the physical state of N worlds and exposes it as a :class:`PnPState`.
+:class:`MujocoBackend` steps real physics; the kinematic backend (``pnp.kinematic``)
+implements the same interface in pure torch.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pnp.box import BoxAsset
+from pnp.executor import IdealExecutor, LowLevelExecutor
+from pnp.kinematics import ArmKinematics
+from pnp.physics import BatchedPhysics
+from pnp.robot import ARM_DEFAULT, FINGER_STROKE, STANDING_HEIGHT
+from pnp.scene import PHYSICS_DT, build_scene
+from pnp.task import HL_DT, PnPState, yaw_rotation
+
+
+@dataclass
+class Layout:
+    """Initial placement for the worlds being reset (rows = those worlds)."""
+
+    base: torch.Tensor  # [M, R, 3] x, y, yaw
+    box_xy_yaw: torch.Tensor  # [M, 3]
+    box_size: torch.Tensor  # [M, 3] full edges
+    box_mass: torch.Tensor  # [M]
+
+
+class Backend(ABC):
+    num_worlds: int
+    num_robots: int
+
+    @abstractmethod
+    def reset(self, worlds: torch.Tensor, layout: Layout) -> None:
+        """Put the worlds ``worlds`` (long indices [M]) at ``layout``, at rest."""
+
+    @abstractmethod
+    def step(self, action: torch.Tensor) -> torch.Tensor:
+        """Advance one HL step with clipped actions [N, R, 8]; returns diverged bool [N]."""
+
+    @abstractmethod
+    def state(self, goal: torch.Tensor, init_goal_dist: torch.Tensor, grasp_cmd: torch.Tensor) -> PnPState:
+        """Current state; task quantities the backend does not own are passed in."""
+
+    def push(self, world: int, force: np.ndarray) -> None:
+        """Apply an external wrench to the box of one world during the next step."""
+        raise NotImplementedError(f"{type(self).__name__} does not model external forces")
+
+    def close(self) -> None:
+        pass
+
+
+class MujocoBackend(Backend):
+    """Batched MuJoCo worlds built from the composer scene; physics at 200 Hz."""
+
+    def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, executor: LowLevelExecutor | None = None,
+                 nthread: int | None = None, physics_dt: float = PHYSICS_DT):
+        self.num_worlds, self.num_robots = num_worlds, num_robots
+        self.mjcf_root, self.model, self.idx = build_scene(num_robots, box, physics_dt)
+        self.physics = BatchedPhysics(self.model, num_worlds, self.idx.box_body, self.idx.box_geoms, nthread)
+        self.executor = executor or IdealExecutor(num_worlds, num_robots)
+        self.nsub = int(round(HL_DT / physics_dt))
+        self.box_size = torch.tensor(box.size, dtype=torch.float32).repeat(num_worlds, 1)
+        self._kin = getattr(self.executor, "kin", None) or ArmKinematics()
+        i = self.idx
+        self._ctrl_cols = (torch.as_tensor(i.base_ctrl), torch.as_tensor(i.arm_ctrl), torch.as_tensor(i.finger_ctrl))
+
+    def reset(self, worlds, layout):
+        m, i = self.model, self.idx
+        ids = worlds.cpu().numpy()
+        qpos = np.tile(m.qpos0, (len(ids), 1))
+        qpos[:, i.base_qpos.reshape(-1)] = layout.base.reshape(len(ids), -1).double().numpy()
+        qpos[:, i.arm_qpos.reshape(-1)] = np.tile(ARM_DEFAULT, self.num_robots)
+        qpos[:, i.finger_qpos.reshape(-1)] = FINGER_STROKE
+        xyz = layout.box_xy_yaw.double().numpy()
+        size = layout.box_size.double().numpy()
+        b = i.box_qpos
+        qpos[:, b : b + 2] = xyz[:, :2]
+        qpos[:, b + 2] = size[:, 2] / 2 + 0.002
+        qpos[:, b + 3] = np.cos(xyz[:, 2] / 2)
+        qpos[:, b + 4 : b + 6] = 0.0
+        qpos[:, b + 6] = np.sin(xyz[:, 2] / 2)
+        for row, w in enumerate(ids):
+            self.physics.set_box(int(w), BoxAsset(tuple(size[row]), float(layout.box_mass[row])))
+        self.physics.reset_worlds(ids, qpos)
+        self.box_size[worlds] = layout.box_size.float()
+        mask = torch.zeros(self.num_worlds, dtype=torch.bool)
+        mask[worlds] = True
+        self.executor.reset(mask, self._arm_q())
+
+    def _arm_q(self):
+        return torch.from_numpy(self.physics.qpos[:, self.idx.arm_qpos]).float()
+
+    def step(self, action):
+        N, R = self.num_worlds, self.num_robots
+        base_yaw = torch.from_numpy(self.physics.qpos[:, self.idx.base_qpos[:, 2]]).float()
+        base, arm, fingers = self.executor.controls(action, base_yaw, self._arm_q(), self.nsub, self.model.opt.timestep)
+        ctrl = torch.zeros(N, self.nsub, self.model.nu, dtype=torch.float64)
+        cb, ca, cf = self._ctrl_cols
+        ctrl[:, :, cb.reshape(-1)] = base.reshape(N, self.nsub, -1).double()
+        ctrl[:, :, ca.reshape(-1)] = arm.reshape(N, self.nsub, -1).double()
+        ctrl[:, :, cf.reshape(-1)] = fingers.reshape(N, self.nsub, -1).double()
+        return torch.from_numpy(self.physics.step(ctrl.numpy()))
+
+    def push(self, world, force):
+        self.physics.push(world, self.idx.box_body, np.asarray(force, dtype=np.float64))
+
+    def state(self, goal, init_goal_dist, grasp_cmd):
+        i = self.idx
+        qpos = torch.from_numpy(self.physics.qpos).float()
+        qvel = torch.from_numpy(self.physics.qvel).float()
+        base = qpos[:, i.base_qpos]
+        arm_q = qpos[:, i.arm_qpos]
+        ee_b, ee_rb = self._kin.fk(arm_q)
+        rot = yaw_rotation(base[..., 2])
+        base_z = torch.full_like(base[..., 0], STANDING_HEIGHT)
+        origin = torch.cat([base[..., :2], base_z.unsqueeze(-1)], -1)
+        b = i.box_qpos
+        touch = torch.from_numpy(self.physics.sensordata[:, i.touch]) > 1e-3
+        box_rot = quat_to_matrix(qpos[:, b + 3 : b + 7])
+        vel = qvel[:, i.box_qvel : i.box_qvel + 6]
+        # Free-joint angular velocity is in the body frame: rotate to world.
+        box_vel = torch.cat([vel[:, :3], (box_rot @ vel[:, 3:].unsqueeze(-1)).squeeze(-1)], -1)
+        return PnPState(
+            base=base, base_z=base_z, base_vel=qvel[:, i.base_qvel], arm_q=arm_q, arm_qd=qvel[:, i.arm_qvel],
+            finger_q=qpos[:, i.finger_qpos], touch=touch,
+            ee_pos=origin + (rot @ ee_b.unsqueeze(-1)).squeeze(-1), ee_rot=rot @ ee_rb,
+            box_pos=qpos[:, b : b + 3], box_rot=box_rot, box_vel=box_vel, box_size=self.box_size,
+            goal=goal, init_goal_dist=init_goal_dist, grasp_cmd=grasp_cmd,
+        )
+
+    def close(self):
+        self.physics.close()
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)

@@ -1,0 +1,66 @@
+"""Low-level executors: turn HL commands (10 Hz) into actuator controls per physics substep.
+
+:class:`LowLevelExecutor` is the interface a learned LL policy implements later.
+:class:`IdealExecutor` is the default: the base tracks the commanded planar velocity
+through velocity-actuated planar joints, the arm tracks the commanded EE pose through
+batched damped-least-squares IK, and the fingers are position-actuated. Joint targets
+advance at the LL rate (50 Hz) and at most at the arm's rated speed (4 rad/s).
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import torch
+
+from pnp.kinematics import ArmKinematics
+from pnp.robot import ARM_SPEED, FINGER_STROKE
+
+LL_DT = 0.02  # s, LL policy at 50 Hz
+
+
+class LowLevelExecutor(ABC):
+    """Maps HL commands to per-substep controls for every world and robot."""
+
+    @abstractmethod
+    def reset(self, worlds: torch.Tensor, arm_q: torch.Tensor) -> None:
+        """Forget internal state of ``worlds`` (bool [N]); ``arm_q`` [N, R, 6] is the new pose."""
+
+    @abstractmethod
+    def controls(self, command: torch.Tensor, base_yaw: torch.Tensor, arm_q: torch.Tensor, nsub: int, dt: float):
+        """Controls for ``nsub`` substeps of ``dt`` seconds.
+
+        ``command`` [N, R, 8] is the clipped HL action. Returns ``(base [N, nsub, R, 3],
+        arm [N, nsub, R, 6], fingers [N, nsub, R, 2])``: base velocity in the world frame
+        (vx, vy, yaw rate), arm joint targets and finger opening targets.
+        """
+
+
+class IdealExecutor(LowLevelExecutor):
+    def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 6):
+        self.kin = ArmKinematics()
+        self.ik_iters = ik_iters
+        self.q_target = self.kin.q_default.expand(num_worlds, num_robots, 6).clone()
+
+    def reset(self, worlds, arm_q):
+        self.q_target[worlds] = arm_q[worlds]
+
+    def controls(self, command, base_yaw, arm_q, nsub, dt):
+        N, R, _ = command.shape
+        t = dt * (torch.arange(nsub, dtype=command.dtype) + 0.5)  # mid-substep times
+        # Base: body-frame command rotated by the yaw expected at each substep.
+        yaw = base_yaw.unsqueeze(1) + command[..., 2].unsqueeze(1) * t[None, :, None]  # [N, nsub, R]
+        vx, vy = command[..., 0].unsqueeze(1), command[..., 1].unsqueeze(1)
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        wz = command[..., 2].unsqueeze(1).expand(N, nsub, R)
+        base = torch.stack([vx * c - vy * s, vx * s + vy * c, wz], -1)
+        # Arm: IK once per HL step (commands are in the base frame), then a rate-limited ramp.
+        q_ik = self.kin.ik(arm_q.reshape(-1, 6), command[..., 3:6].reshape(-1, 3), command[..., 6].reshape(-1), self.ik_iters)
+        q_ik = q_ik.reshape(N, R, 6)
+        ticks = torch.floor(t / LL_DT) + 1  # LL ticks elapsed at each substep
+        step = (ARM_SPEED * LL_DT * ticks)[None, :, None, None]
+        delta = (q_ik - self.q_target).unsqueeze(1)
+        arm = self.q_target.unsqueeze(1) + torch.clamp(delta, -step, step)
+        self.q_target = arm[:, -1].clone()
+        grip = torch.where(command[..., 7] > 0.5, 0.0, FINGER_STROKE)  # closed: squeeze to 0
+        fingers = grip[:, None, :, None].expand(N, nsub, R, 2)
+        return base, arm, fingers

@@ -1,0 +1,46 @@
+"""Episode randomisation (paper Sec. IV): box asset and U(0.8, 1.2) scaling of every edge,
+robots and box 0.6-5 m from the goal (at the world origin), random headings.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from pnp.backend import Layout
+from pnp.box import BoxAsset
+
+START_RANGE = (0.6, 5.0)  # m from the goal
+SCALE_RANGE = (0.8, 1.2)
+MIN_ROBOT_BOX = 1.2  # m between a robot's base and the box centre at start (ours)
+MIN_ROBOT_ROBOT = 1.5  # m between the two bases at start (ours)
+
+
+def _ring(rng: torch.Generator, shape) -> torch.Tensor:
+    r = START_RANGE[0] + (START_RANGE[1] - START_RANGE[0]) * torch.rand(shape, generator=rng)
+    a = 2 * math.pi * torch.rand(shape, generator=rng)
+    return torch.stack([r * torch.cos(a), r * torch.sin(a)], -1)
+
+
+def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[BoxAsset, ...], tries: int = 16) -> Layout:
+    """Layouts for ``m`` worlds; rejection sampling (vectorised over ``tries`` candidates)."""
+    k = torch.randint(len(assets), (m,), generator=rng)
+    edges = torch.tensor([a.size for a in assets], dtype=torch.float32)[k]
+    scale = SCALE_RANGE[0] + (SCALE_RANGE[1] - SCALE_RANGE[0]) * torch.rand(m, 3, generator=rng)
+    mass = torch.tensor([a.mass for a in assets], dtype=torch.float32)[k]
+    box_xy = _ring(rng, (m,))
+    bases = _ring(rng, (m, tries, num_robots))  # [m, tries, R, 2]
+    ok = ((bases - box_xy[:, None, None]).norm(dim=-1) > MIN_ROBOT_BOX).all(-1)
+    if num_robots == 2:
+        ok &= (bases[:, :, 0] - bases[:, :, 1]).norm(dim=-1) > MIN_ROBOT_ROBOT
+    # First valid candidate (the last one if none is valid: rare, and still a legal start).
+    first = torch.where(ok.any(-1), ok.float().argmax(-1), torch.full((m,), tries - 1))
+    base_xy = bases[torch.arange(m), first]
+    yaw = (torch.rand(m, num_robots, generator=rng) * 2 - 1) * math.pi
+    box_yaw = (torch.rand(m, generator=rng) * 2 - 1) * math.pi
+    return Layout(
+        base=torch.cat([base_xy, yaw.unsqueeze(-1)], -1),
+        box_xy_yaw=torch.cat([box_xy, box_yaw.unsqueeze(-1)], -1),
+        box_size=edges * scale,
+        box_mass=mass,
+    )

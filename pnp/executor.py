@@ -8,11 +8,12 @@ advance at the LL rate (50 Hz) and at most at the arm's rated speed (4 rad/s).
 """
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 
 import torch
 
-from pnp.kinematics import ArmKinematics
+from pnp.kinematics import ArmKinematics, gripper_yaw
 from pnp.robot import ARM_SPEED, FINGER_STROKE
 
 LL_DT = 0.02  # s, LL policy at 50 Hz
@@ -36,13 +37,17 @@ class LowLevelExecutor(ABC):
 
 
 class IdealExecutor(LowLevelExecutor):
-    def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 6):
+    def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 3):
         self.kin = ArmKinematics()
         self.ik_iters = ik_iters
         self.q_target = self.kin.q_default.expand(num_worlds, num_robots, 6).clone()
+        # IK is seeded with the previous solution: HL commands change little per step,
+        # so a few iterations converge (tested: EE error after one HL step).
+        self.q_ik = self.q_target.clone()
 
     def reset(self, worlds, arm_q):
         self.q_target[worlds] = arm_q[worlds]
+        self.q_ik[worlds] = arm_q[worlds]
 
     def controls(self, command, base_yaw, arm_q, nsub, dt):
         N, R, _ = command.shape
@@ -54,8 +59,13 @@ class IdealExecutor(LowLevelExecutor):
         wz = command[..., 2].unsqueeze(1).expand(N, nsub, R)
         base = torch.stack([vx * c - vy * s, vx * s + vy * c, wz], -1)
         # Arm: IK once per HL step (commands are in the base frame), then a rate-limited ramp.
-        q_ik = self.kin.ik(arm_q.reshape(-1, 6), command[..., 3:6].reshape(-1, 3), command[..., 6].reshape(-1), self.ik_iters)
-        q_ik = q_ik.reshape(N, R, 6)
+        # A parallel gripper is symmetric under a half turn: aim for whichever of yaw and
+        # yaw + pi is nearer the current one, so the wrist never spins half a turn.
+        yaw_now = gripper_yaw(self.kin.fk(self.q_ik)[1])
+        yaw = command[..., 6]
+        yaw = yaw_now + torch.remainder(yaw - yaw_now + math.pi / 2, math.pi) - math.pi / 2
+        q_ik = self.kin.ik(self.q_ik.reshape(-1, 6), command[..., 3:6].reshape(-1, 3), yaw.reshape(-1), self.ik_iters)
+        self.q_ik = q_ik = q_ik.reshape(N, R, 6)
         ticks = torch.floor(t / LL_DT) + 1  # LL ticks elapsed at each substep
         step = (ARM_SPEED * LL_DT * ticks)[None, :, None, None]
         delta = (q_ik - self.q_target).unsqueeze(1)

@@ -35,7 +35,10 @@ ARM_TORQUE = 40.0  # N m
 ARM_SPEED = 4.0  # rad/s
 ARM_LINK_MASSES = (2.0, 3.0, 1.0, 1.5, 1.0, 0.5)  # ours, ~9 kg + 1 kg gripper = ~10-11 kg
 ARM_JOINTS = ("arm_j1", "arm_j2", "arm_j3", "arm_j4", "arm_j5", "arm_j6")
-ARM_RANGES = ((-2.8, 2.8), (-1.6, 2.6), (-2.8, 0.2), (-3.0, 3.0), (-2.6, 2.6), (-3.1, 3.1))  # ours
+# Ours, narrower than the real arm's: the elbow stops short of straight, the shoulder of
+# pointing up, and the forearm roll and wrist pitch exclude the flipped-wrist branch, so
+# warm-started IK stays on one solution branch (yaw comes from j1 and j6).
+ARM_RANGES = ((-2.8, 2.8), (-0.8, 2.6), (-2.8, -0.15), (-1.5, 1.5), (-0.5, 2.6), (-3.1, 3.1))
 # Default arm pose (ours, solved by IK): gripper pointing down in front of the trunk.
 ARM_DEFAULT = (0.0, 1.23, -1.71, 0.0, 2.05, 0.0)  # EE at (0.75, 0, -0.30) in the base frame
 

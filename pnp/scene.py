@@ -29,6 +29,9 @@ class PnPArena(composer.Entity):
         root.option.cone = "elliptic"
         root.option.impratio = 5  # stiffer friction: handles must not slip out of the pads
         root.size.memory = "8M"
+        # Box geoms are resized per world after compilation; the compiled per-body BVH
+        # would then be stale, so skip midphase (bodies here have few geoms anyway).
+        root.option.flag.midphase = "disable"
         root.visual.headlight.set_attributes(ambient=(0.4, 0.4, 0.4), diffuse=(0.6, 0.6, 0.6))
         root.visual.quality.shadowsize = 0
         root.asset.add("texture", name="grid", type="2d", builtin="checker", rgb1=(0.25, 0.3, 0.35), rgb2=(0.3, 0.35, 0.4), width=256, height=256)

@@ -30,6 +30,18 @@ ACTION_NAMES = ("base_vx", "base_vy", "base_wz", "ee_x", "ee_y", "ee_z", "ee_yaw
 ACTION_LOW = (-1.0, -0.5, -1.0, 0.3, -0.6, -0.55, -1.5708, 0.0)
 ACTION_HIGH = (1.0, 0.5, 1.0, 1.3, 0.6, 0.35, 1.5708, 1.0)
 OBS_BLOCKS = {"ego": 31, "goal": 3, "object": 30, "neighbour": 10}
+# Fields inside each block (slices), for scripted policies and per-field saliency.
+OBS_FIELDS = {
+    "ego": {"base_vel": slice(0, 3), "arm_q": slice(3, 9), "arm_qd": slice(9, 15), "ee_pos": slice(15, 18),
+            "ee_yaw_sincos": slice(18, 20), "gripper_opening": slice(20, 21), "pad_touch": slice(21, 23),
+            "last_action": slice(23, 31)},
+    "goal": {"goal_xy": slice(0, 2), "goal_dist": slice(2, 3)},
+    "object": {"box_pos": slice(0, 3), "box_x_axis": slice(3, 6), "box_y_axis": slice(6, 9), "box_lin_vel": slice(9, 12),
+               "box_ang_vel": slice(12, 15), "handles": slice(15, 21), "handles_from_ee": slice(21, 27),
+               "box_size": slice(27, 30)},
+    "neighbour": {"base_xy": slice(0, 2), "yaw_sincos": slice(2, 4), "ee_pos": slice(4, 7), "gripper_opening": slice(7, 8),
+                  "pad_touch": slice(8, 10)},
+}
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pnp.backend import Backend, MujocoBackend
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.layout import sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, EPISODE_S, HL_DT, LIFT_HEIGHT, OBS_BLOCKS, default_reward, geometry, observations,
+    ACTION_HIGH, ACTION_LOW, EPISODE_S, HL_DT, OBS_BLOCKS, default_reward, geometry, observations,
     reward_terms, stage_conditions,
 )
 from pnp.terms import CONDITIONS, REWARD_TERMS
@@ -125,13 +125,13 @@ class PnPEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action, clipped = self._check_action(tensordict.get(("agents", "action")))
         diverged = self.backend.step(action)
+        self._steps += 1
         if diverged.any():
             # Reset the diverged worlds alone; the others carry on. They end as truncated.
             ids = diverged.nonzero().squeeze(-1)
             self.diverged_count += len(ids)
             self._reset_worlds(ids)
             action = torch.where(diverged[:, None, None], self._last_action, action)
-        self._steps += 1
         out = self._observe(action, self._last_action)
         self._last_action = action
         cond = out.get(("agents", "stage_conditions"))

@@ -79,7 +79,7 @@ class ArmKinematics:
         offs, axes = [], []
         for f in frames[2:]:
             jo = f.joint.offset
-            if jo is not None and not torch.allclose(jo.get_matrix(), torch.eye(4)):
+            if jo is not None and not torch.allclose(jo.get_matrix().float(), torch.eye(4)):
                 raise RuntimeError(f"joint {f.joint.name} has an offset; not supported")
             offs.append(f.link.offset.get_matrix()[0])
             axes.append(f.joint.axis if f.joint.joint_type != "fixed" else None)

@@ -1,0 +1,29 @@
+"""Runs the code of the README section on the curriculum, from its markdown source."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import torch
+
+import pnp.transforms  # noqa: F401  # pay the torchrl import at collection, not in the test
+
+SECTION = Path(__file__).resolve().parents[2] / "docs" / "curriculum_readme_section.md"
+
+
+def python_blocks(text: str) -> list[str]:
+    return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
+
+
+def test_readme_example_runs(tmp_path, monkeypatch):
+    blocks = python_blocks(SECTION.read_text())
+    assert len(blocks) == 1
+    monkeypatch.chdir(tmp_path)  # the example saves a checkpoint in the working dir
+    scope: dict = {"__name__": "readme_example"}
+    exec(compile(blocks[0], str(SECTION), "exec"), scope)
+    rollout, schedule = scope["rollout"], scope["schedule"]
+    assert rollout["next", "agents", "reward"].shape == (4, 100, 2, 1)
+    assert rollout["next", "agents", "stage_one_hot"].shape == (4, 100, 2, 3)
+    assert schedule.rho.shape == (4, 2, 2)
+    assert (tmp_path / "curriculum.pt").exists()
+    assert torch.all(schedule.rho >= 0.05)

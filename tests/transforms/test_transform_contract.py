@@ -1,0 +1,135 @@
+"""The TorchRL transform contract for every curriculum transform.
+
+Each is run alone on an env, in a ``Compose`` (after ``StepCounter`` and
+``StageTransition``), inside ``SerialEnv`` (transform outside and inside the workers),
+inside ``ParallelEnv`` (slow), in a collector, without an env, and through a
+``state_dict`` round trip. ``"stage"`` is ``StageTransition``; the others are reward
+schedules (alone, they read the stage from an env that emits it).
+"""
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from pnp.transforms import StageRewardSchedule, StageTransition
+
+from ._toy_env import make_curriculum, make_pnp_toy_env, make_transformed
+
+KINDS = ["stage", "dynamic", "fixed", "liu_max", "liu_min"]
+SCHEDULES = KINDS[1:]
+KEYS = [("next", "agents", "stage"), ("next", "agents", "episode_stage"), ("next", "agents", "reward")]
+
+
+def rollout(env, steps=12):
+    return env.rollout(steps, break_when_any_done=False)
+
+
+def assert_same(a, b, keys=KEYS):
+    for key in keys:
+        if key in a.keys(True):
+            assert torch.equal(a[key], b[key]), key
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_alone_on_env(kind):
+    env = make_transformed(kind, chain=False, emit_stage=kind != "stage")
+    check_env_specs(env)
+    r = rollout(env)
+    assert r["next", "agents", "stage"].shape == (3, 12, 2, 1)
+
+
+@pytest.mark.parametrize("kind", SCHEDULES)
+def test_in_compose(kind):
+    env = make_transformed(kind, chain=True)
+    check_env_specs(env)
+    r = rollout(env)
+    # StepCounter truncates world 2 at step 5: its final stage is taken there too.
+    done = r["next", "done"].squeeze(-1)
+    ended = (r["next", "agents", "episode_stage"] >= 0).squeeze(-1).all(-1)
+    assert torch.equal(done, ended) and done[2, 4]
+    if kind == "dynamic":
+        assert env.transform[-1].pop_stage_histogram().sum() == 2 * done.sum()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_serial_env_outside_and_inside(kind):
+    mk = functools.partial(make_pnp_toy_env, emit_stage=kind != "stage")
+    outside = TransformedEnv(SerialEnv(2, mk), make_curriculum(kind, chain=kind != "stage"))
+    inside = SerialEnv(2, functools.partial(make_transformed, kind, kind != "stage", kind != "stage"))
+    for env in (outside, inside):
+        check_env_specs(env)
+    a, b = rollout(outside), rollout(inside)
+    assert a.shape == (2, 3, 12)
+    assert_same(a, b)
+    if kind == "dynamic":
+        assert outside.transform[-1].rho.shape == (2, 3, 2, 12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["dynamic", "liu_max"])
+def test_parallel_env(kind):
+    make = functools.partial(make_transformed, kind, True)
+    par = ParallelEnv(2, make)
+    try:
+        check_env_specs(par)
+        assert_same(rollout(par), rollout(SerialEnv(2, make)))
+    finally:
+        par.close()
+
+
+def test_collector_carries_the_stage():
+    env = make_transformed("dynamic", chain=True)
+    collector = Collector(env, policy=None, frames_per_batch=36, total_frames=72)
+    batches = [b for b in collector]
+    collector.shutdown()
+    stage = torch.cat([b["next", "agents", "stage"] for b in batches], 1).squeeze(-1)  # [3, 24, 2]
+    assert stage[2, :, 0].max() == 5  # climbs one step per env step: carried by the collector
+    assert env.transform[-1].pop_stage_histogram().sum() > 0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_without_env(kind):
+    t = make_curriculum(kind)
+    nxt = {
+        ("agents", "stage_conditions"): torch.ones(3, 2, 6, dtype=torch.bool),
+        ("agents", "reward_terms"): torch.ones(3, 2, 16),
+        ("agents", "stage"): torch.full((3, 2, 1), 4),
+        ("agents", "episode_stage"): torch.full((3, 2, 1), -1),
+        "done": torch.zeros(3, 1, dtype=torch.bool),
+    }
+    td = TensorDict({("agents", "stage"): torch.full((3, 2, 1), 3), "next": TensorDict(nxt, [3])}, [3])
+    out = t(td)
+    if isinstance(t, StageTransition):
+        assert (out["next", "agents", "stage"] == 4).all()
+    else:
+        assert isinstance(t, StageRewardSchedule)
+        assert out["next", "agents", "reward"].shape == (3, 2, 1)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_state_dict_round_trip(kind):
+    trained = make_transformed(kind, chain=True)
+    rollout(trained, 23)
+    fresh = make_transformed(kind, chain=True)
+    state = trained.transform.state_dict()
+    fresh.transform.load_state_dict(state)
+    if kind == "stage":
+        assert not state  # stateless: the stage lives in the tensordict
+    for key, value in state.items():
+        assert torch.equal(value, fresh.transform.state_dict()[key]), key
+    assert_same(rollout(trained), rollout(fresh))
+    for key, value in trained.transform.state_dict().items():
+        assert torch.equal(value, fresh.transform.state_dict()[key]), key
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_clone(kind):
+    t = make_curriculum(kind, chain=True)
+    env = TransformedEnv(make_pnp_toy_env(), t.clone())
+    rollout(env, 3)

@@ -1,0 +1,222 @@
+"""``StageTransition``: the stage transition graph as a stateless TorchRL transform.
+
+The stage lives in the tensordict, not in the transform: ``_step`` reads the stage at
+time t from the input and writes the stage at t+1 into ``"next"``. Like
+``TensorDictPrimer``, the stage is declared in both the observation and the state spec,
+so that batched envs (``SerialEnv``/``ParallelEnv``) pass it back to their workers and
+collectors carry it across steps; no buffer has to match a batch size.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey, unravel_key
+from torchrl.data import Bounded, Categorical, Composite, OneHot
+from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms.utils import _get_reset
+
+from pnp.stage_graph import StageGraph
+
+__all__ = ["StageTransition"]
+
+
+def _get(td: TensorDictBase, key: NestedKey, where: str) -> torch.Tensor:
+    """``td.get(key)`` with an error that says what is there instead."""
+    value = td.get(key, None)
+    if value is None:
+        present = ", ".join(sorted(_fmt(k) for k in td.keys(True, True)))
+        raise KeyError(f"{_fmt(key)} not found in the {where} tensordict; keys present: {present}")
+    return value
+
+
+def _fmt(key: NestedKey) -> str:
+    """``("agents", "stage")`` -> ``agents.stage`` (KeyError messages escape quotes)."""
+    return key if isinstance(key, str) else ".".join(key)
+
+
+def _slot_reset_mask(
+    td: TensorDictBase,
+    reset_keys: Sequence[NestedKey],
+    slot_shape: torch.Size,
+    device: torch.device,
+) -> torch.Tensor:
+    """Bool ``[*B, A]``: which (world, agent) slots a reset touches.
+
+    Reset keys may sit at the root (``"_reset"`` ``[*B, 1]``) or in the agent group
+    (``("agents", "_reset")`` ``[*B, A, 1]``); no reset key at all means a full reset.
+    """
+    keys = [k for k in reset_keys if td.get(k, None) is not None]
+    if not keys:
+        return torch.ones(slot_shape, dtype=torch.bool, device=device)
+    mask = torch.zeros(slot_shape, dtype=torch.bool, device=device)
+    for key in keys:
+        m = _get_reset(key, td).to(device)
+        m = m.reshape(*m.shape, *([1] * (len(slot_shape) - m.ndim)))
+        mask |= m.expand(slot_shape)
+    return mask
+
+
+def _done_per_slot(done: torch.Tensor, slot_shape: torch.Size) -> torch.Tensor:
+    """Team done ``[*B, 1]`` or per-agent done ``[*B, A, 1]`` -> bool ``[*B, A]``."""
+    batch = slot_shape[:-1]
+    return done.reshape(*batch, -1).bool().expand(slot_shape)
+
+
+class _ResetKeysMixin:
+    """Reset keys: given, else the parent env's, else the root ``"_reset"``."""
+
+    def _init_reset_keys(self, reset_keys: Sequence[NestedKey] | None) -> None:
+        if reset_keys is not None:
+            reset_keys = [unravel_key(k) for k in reset_keys]
+        self._given_reset_keys = reset_keys
+
+    @property
+    def reset_keys(self) -> list[NestedKey]:
+        if self._given_reset_keys is not None:
+            return self._given_reset_keys
+        parent = self.parent
+        return list(parent.reset_keys) if parent is not None else ["_reset"]
+
+
+class StageTransition(_ResetKeysMixin, Transform):
+    """Advances each robot's stage along a :class:`~pnp.stage_graph.StageGraph`.
+
+    Reads ``conditions_key`` (bool ``[*B, A, C]``, columns in ``graph.conditions``
+    order) at t+1 and the stage at t; writes the stage at t+1. Keys written:
+
+    * ``stage_key``: int64 ``[*B, A, 1]`` (trailing 1 as for rewards and dones);
+      ``0`` after reset. Observation and state spec.
+    * ``episode_stage_key``: int64 ``[*B, A, 1]``, the stage at the step where
+      ``done_key`` is true (the episode's final stage, before the reset), ``-1`` at every
+      other step. The reward schedules and loggers read it.
+    * ``one_hot_key`` (optional): float ``[*B, A, n_stages]``, for the teacher's
+      observation.
+
+    Place it after any transform that changes ``done`` (e.g. ``StepCounter``).
+    ``transform(td)`` outside an env runs one step on a td holding t and ``"next"``.
+    """
+
+    def __init__(
+        self,
+        graph: StageGraph,
+        conditions_key: NestedKey = ("agents", "stage_conditions"),
+        stage_key: NestedKey = ("agents", "stage"),
+        episode_stage_key: NestedKey = ("agents", "episode_stage"),
+        one_hot_key: NestedKey | None = None,
+        done_key: NestedKey = "done",
+        reset_keys: Sequence[NestedKey] | None = None,
+    ):
+        self.graph = graph
+        self.conditions_key = unravel_key(conditions_key)
+        self.stage_key = unravel_key(stage_key)
+        self.episode_stage_key = unravel_key(episode_stage_key)
+        self.one_hot_key = None if one_hot_key is None else unravel_key(one_hot_key)
+        self.done_key = unravel_key(done_key)
+        out_keys = [self.stage_key, self.episode_stage_key]
+        if self.one_hot_key is not None:
+            out_keys.append(self.one_hot_key)
+        super().__init__(in_keys=[self.conditions_key], out_keys=out_keys)
+        self._init_reset_keys(reset_keys)
+
+    # -- data -------------------------------------------------------------------------
+    def _write(self, td: TensorDictBase, stage: torch.Tensor, final: torch.Tensor) -> None:
+        td.set(self.stage_key, stage.unsqueeze(-1))
+        td.set(self.episode_stage_key, final.unsqueeze(-1))
+        if self.one_hot_key is not None:
+            one_hot = torch.nn.functional.one_hot(stage, self.graph.n_stages)
+            td.set(self.one_hot_key, one_hot.to(torch.get_default_dtype()))
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        cond = _get(next_tensordict, self.conditions_key, "step output")
+        if cond.shape[-1] != len(self.graph.conditions):
+            raise ValueError(
+                f"{self.conditions_key!r} has {cond.shape[-1]} columns, the graph has "
+                f"{len(self.graph.conditions)} conditions {self.graph.conditions}"
+            )
+        stage = _get(tensordict, self.stage_key, "step input (reset the env first?)")
+        stage = stage.reshape(cond.shape[:-1])
+        new = self.graph.next_stage(stage, cond)
+        done = _done_per_slot(_get(next_tensordict, self.done_key, "step output"), new.shape)
+        self._write(next_tensordict, new, torch.where(done, new, -1))
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        # Slot shape from the conditions if the env emits them at reset, else from the
+        # previous stage; worlds not reset keep their stage.
+        prev = tensordict.get(self.stage_key, None)
+        cond = tensordict_reset.get(self.conditions_key, None)
+        like = cond if cond is not None else prev
+        if like is not None:
+            slots, device = like.shape[:-1], like.device
+        else:
+            slots, device = self._slot_shape_from_spec(tensordict_reset), tensordict_reset.device
+        reset = _slot_reset_mask(tensordict, self.reset_keys, slots, device)
+        stage = torch.zeros(slots, dtype=torch.long, device=device)
+        if prev is not None:
+            stage = torch.where(reset, stage, prev.reshape(slots))
+        self._write(tensordict_reset, stage, torch.full_like(stage, -1))
+        return tensordict_reset
+
+    def _slot_shape_from_spec(self, td: TensorDictBase) -> torch.Size:
+        parent = self.parent
+        if parent is None:
+            raise KeyError(
+                f"cannot size the stage: neither {self.conditions_key!r} in the reset "
+                f"output nor {self.stage_key!r} in the input, and no parent env"
+            )
+        return parent.full_observation_spec[self.conditions_key].shape[:-1]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One env-free step: ``tensordict`` holds t and its ``"next"`` entry."""
+        next_td = _get(tensordict, "next", "input")
+        tensordict.set("next", self._step(tensordict, next_td))
+        return tensordict
+
+    # -- specs ------------------------------------------------------------------------
+    def _new_specs(self, like: Composite) -> dict:
+        cond_spec = like[self.conditions_key]
+        if cond_spec.shape[-1] != len(self.graph.conditions):
+            raise ValueError(
+                f"{self.conditions_key!r} spec has {cond_spec.shape[-1]} columns, the "
+                f"graph has {len(self.graph.conditions)} conditions"
+            )
+        slots, n, dev = cond_spec.shape[:-1], self.graph.n_stages, cond_spec.device
+        specs = {
+            self.stage_key: Categorical(n, shape=(*slots, 1), dtype=torch.long, device=dev),
+            self.episode_stage_key: Bounded(
+                -1, n - 1, shape=(*slots, 1), dtype=torch.long, device=dev
+            ),
+        }
+        if self.one_hot_key is not None:
+            specs[self.one_hot_key] = OneHot(
+                n, shape=(*slots, n), dtype=torch.get_default_dtype(), device=dev
+            )
+        return specs
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        for key, spec in self._new_specs(observation_spec).items():
+            _set_nested(observation_spec, key, spec, like=observation_spec)
+        return observation_spec
+
+    def transform_input_spec(self, input_spec: Composite) -> Composite:
+        # The stage at t is an input of step: declare it as state (see module doc).
+        obs = self.parent.output_spec["full_observation_spec"]
+        state = input_spec["full_state_spec"]
+        if state is None:
+            state = Composite(shape=input_spec.shape, device=input_spec.device)
+        _set_nested(state, self.stage_key, self._new_specs(obs)[self.stage_key], like=obs)
+        input_spec["full_state_spec"] = state
+        return input_spec
+
+
+def _set_nested(root: Composite, key: NestedKey, spec, like: Composite) -> None:
+    """``root[key] = spec``, creating missing groups with the batch shape ``like`` has."""
+    key = (key,) if isinstance(key, str) else key
+    for i in range(1, len(key)):
+        prefix = key[:i]
+        if prefix not in root.keys(True):
+            node_shape = like[prefix].shape if prefix in like.keys(True) else spec.shape[:-1]
+            root[prefix] = Composite(shape=node_shape, device=spec.device)
+    root[key] = spec

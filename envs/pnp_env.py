@@ -176,6 +176,25 @@ class PnPEnv(EnvBase):
                           batch_size=(self.num_worlds,))
 
     # --- extras ------------------------------------------------------------------------------
+    _STATE = ("_goal", "_init_goal_dist", "_last_action", "_steps", "_was_lifted")
+
+    def get_state(self) -> dict:
+        """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
+        st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
+        st.update({k: getattr(self, k).clone() for k in self._STATE})
+        st["rng"] = self._rng.get_state()
+        st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
+        return st
+
+    def set_state(self, state: dict) -> None:
+        missing = [k for k in (*self._STATE, "rng", "counters") if k not in state]
+        if missing:
+            raise KeyError(f"env state is missing {missing}; present: {sorted(state)}")
+        self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
+        for k in self._STATE:
+            setattr(self, k, state[k].clone())
+        self._rng.set_state(state["rng"])
+        self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""
         self.backend.push(world, np.asarray(force, dtype=np.float64))

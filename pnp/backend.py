@@ -47,6 +47,14 @@ class Backend(ABC):
     def state(self, goal: torch.Tensor, init_goal_dist: torch.Tensor, grasp_cmd: torch.Tensor) -> PnPState:
         """Current state; task quantities the backend does not own are passed in."""
 
+    @abstractmethod
+    def get_state(self) -> dict[str, torch.Tensor]:
+        """Everything needed to continue bit-for-bit (tensors only; cloned)."""
+
+    @abstractmethod
+    def set_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore what :meth:`get_state` returned."""
+
     def push(self, world: int, force: np.ndarray) -> None:
         """Apply an external wrench to the box of one world during the next step."""
         raise NotImplementedError(f"{type(self).__name__} does not model external forces")
@@ -66,6 +74,7 @@ class MujocoBackend(Backend):
         self.executor = executor or IdealExecutor(num_worlds, num_robots)
         self.nsub = int(round(HL_DT / physics_dt))
         self.box_size = torch.tensor(box.size, dtype=torch.float32).repeat(num_worlds, 1)
+        self.box_mass = torch.full((num_worlds,), box.mass, dtype=torch.float32)
         self._kin = getattr(self.executor, "kin", None) or ArmKinematics()
         i = self.idx
         self._ctrl_cols = (torch.as_tensor(i.base_ctrl), torch.as_tensor(i.arm_ctrl), torch.as_tensor(i.finger_ctrl))
@@ -89,6 +98,7 @@ class MujocoBackend(Backend):
             self.physics.set_box(int(w), BoxAsset(tuple(size[row]), float(layout.box_mass[row])))
         self.physics.reset_worlds(ids, qpos)
         self.box_size[worlds] = layout.box_size.float()
+        self.box_mass[worlds] = layout.box_mass.float()
         mask = torch.zeros(self.num_worlds, dtype=torch.bool)
         mask[worlds] = True
         self.executor.reset(mask, self._arm_q())
@@ -106,6 +116,25 @@ class MujocoBackend(Backend):
         ctrl[:, :, ca.reshape(-1)] = arm.reshape(N, self.nsub, -1).double()
         ctrl[:, :, cf.reshape(-1)] = fingers.reshape(N, self.nsub, -1).double()
         return torch.from_numpy(self.physics.step(ctrl.numpy()))
+
+    def get_state(self):
+        st = {"physics": torch.from_numpy(self.physics.state.copy()), "sensordata": torch.from_numpy(self.physics.sensordata.copy()),
+              "box_size": self.box_size.clone(), "box_mass": self.box_mass.clone()}
+        for k in ("q_target", "q_ik"):
+            if hasattr(self.executor, k):
+                st[f"executor.{k}"] = getattr(self.executor, k).clone()
+        return st
+
+    def set_state(self, state):
+        self.physics.state = state["physics"].numpy().copy()
+        self.physics.sensordata = state["sensordata"].numpy().copy()
+        self.box_size = state["box_size"].clone()
+        self.box_mass = state["box_mass"].clone()
+        for w in range(self.num_worlds):
+            self.physics.set_box(w, BoxAsset(tuple(self.box_size[w].double().tolist()), float(self.box_mass[w])))
+        for k, v in state.items():
+            if k.startswith("executor."):
+                setattr(self.executor, k.split(".", 1)[1], v.clone())
 
     def push(self, world, force):
         self.physics.push(world, self.idx.box_body, np.asarray(force, dtype=np.float64))

@@ -166,3 +166,22 @@ def test_unknown_backend_and_robot_count():
         PnPEnv(num_worlds=2, backend="bullet")
     with pytest.raises(ValueError, match="num_robots must be 1 or 2, got 3"):
         PnPEnv(num_worlds=2, num_robots=3)
+
+
+def test_get_set_state_continues_exactly():
+    env = _env(n=3)
+    td = env.reset()
+    a = _const_action(env, a0=0.3, a2=0.2)
+    for _ in range(2):
+        td = env.step_mdp(env.step(td.set(("agents", "action"), a)))
+    saved, td_saved = env.get_state(), td.clone()
+    ref = [env.step_mdp(env.step(td.set(("agents", "action"), a)))["agents", "observation"] for _ in range(1)]
+    ref.append(env.reset(td.clone().set("_reset", torch.tensor([[True], [False], [False]])))["agents", "observation"])
+    other = _env(n=3, seed=99)
+    other.set_state(saved)
+    got = [other.step_mdp(other.step(td_saved.set(("agents", "action"), a)))["agents", "observation"]]
+    got.append(other.reset(td_saved.clone().set("_reset", torch.tensor([[True], [False], [False]])))["agents", "observation"])
+    for r, g in zip(ref, got):
+        torch.testing.assert_close(r, g, rtol=0, atol=0)
+    with pytest.raises(KeyError, match="_goal"):
+        other.set_state({k: v for k, v in saved.items() if k != "_goal"})

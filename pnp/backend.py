@@ -120,7 +120,7 @@ class MujocoBackend(Backend):
     def get_state(self):
         st = {"physics": torch.from_numpy(self.physics.state.copy()), "sensordata": torch.from_numpy(self.physics.sensordata.copy()),
               "box_size": self.box_size.clone(), "box_mass": self.box_mass.clone()}
-        for k in ("q_target", "q_ik"):
+        for k in ("q_target", "q_ik", "yaw_ik"):
             if hasattr(self.executor, k):
                 st[f"executor.{k}"] = getattr(self.executor, k).clone()
         return st

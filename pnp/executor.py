@@ -13,7 +13,7 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from pnp.kinematics import ArmKinematics, gripper_yaw
+from pnp.kinematics import ArmKinematics, gripper_yaw, wrap_angle
 from pnp.robot import ARM_SPEED, FINGER_STROKE
 
 LL_DT = 0.02  # s, LL policy at 50 Hz
@@ -44,10 +44,12 @@ class IdealExecutor(LowLevelExecutor):
         # IK is seeded with the previous solution: HL commands change little per step,
         # so a few iterations converge (tested: EE error after one HL step).
         self.q_ik = self.q_target.clone()
+        self.yaw_ik = gripper_yaw(self.kin.fk(self.q_ik)[1])  # yaw the last IK aimed for
 
     def reset(self, worlds, arm_q):
         self.q_target[worlds] = arm_q[worlds]
         self.q_ik[worlds] = arm_q[worlds]
+        self.yaw_ik[worlds] = gripper_yaw(self.kin.fk(arm_q[worlds])[1])
 
     def controls(self, command, base_yaw, arm_q, nsub, dt):
         N, R, _ = command.shape
@@ -61,9 +63,11 @@ class IdealExecutor(LowLevelExecutor):
         # Arm: IK once per HL step (commands are in the base frame), then a rate-limited ramp.
         # A parallel gripper is symmetric under a half turn: aim for whichever of yaw and
         # yaw + pi is nearer the current one, so the wrist never spins half a turn.
-        yaw_now = gripper_yaw(self.kin.fk(self.q_ik)[1])
         yaw = command[..., 6]
-        yaw = yaw_now + torch.remainder(yaw - yaw_now + math.pi / 2, math.pi) - math.pi / 2
+        yaw = wrap_angle(self.yaw_ik + torch.remainder(yaw - self.yaw_ik + math.pi / 2, math.pi) - math.pi / 2)
+        # Near a half turn from the default, flip back so the wrist stays inside its range.
+        yaw = torch.where(yaw.abs() > 2.6, yaw - torch.sign(yaw) * math.pi, yaw)
+        self.yaw_ik = yaw
         q_ik = self.kin.ik(self.q_ik.reshape(-1, 6), command[..., 3:6].reshape(-1, 3), yaw.reshape(-1), self.ik_iters)
         self.q_ik = q_ik = q_ik.reshape(N, R, 6)
         ticks = torch.floor(t / LL_DT) + 1  # LL ticks elapsed at each substep

@@ -47,8 +47,8 @@ GRIPPER_MASS = 1.0  # kg
 FINGER_STROKE = 0.07  # m per finger (140 mm total)
 PAD_HALF = (0.015, 0.008, 0.035)  # pad 0.03 x 0.07 m; thickness ours
 GRIPPER_LEN = 0.16  # ours: flange to the centre between the pads
-FINGER_FORCE = 100.0  # N, ours
-FINGER_KP = 1500.0  # N/m, ours
+FINGER_FORCE = 125.0  # N, published 2F-140 maximum grip force
+FINGER_KP = 5000.0  # N/m, ours: ~75 N on a 30 mm bar
 
 # Contact groups: floor 1, robot 2, box 4 (box collides with both; robot not with floor).
 ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 4

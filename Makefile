@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
-.PHONY: venv test test-all train benchmark
+.PHONY: venv test test-all train benchmark render-deps
 venv: $(STAMP)
 
 test: $(STAMP)
@@ -25,3 +25,7 @@ train: $(STAMP)
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py
+
+# Offscreen rendering on CPU (Debian's Mesa EGL); the render test skips without it.
+render-deps:
+	apt-get update -q && apt-get install -y -q libegl1 libegl-mesa0 libgl1-mesa-dri

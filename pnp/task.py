@@ -174,7 +174,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "gripper_grasp_pose": torch.exp(-10 * g.ee_handle[..., 2].abs()) * g.align,
         "object_grabbed": grabbed,
         "grab_action": torch.where(g.grasped, p, 1 - p),
-        "object_height": box(height) * grabbed,
+        "object_height": box(height),
         "object_to_goal_vel": box(torch.clamp(1 - torch.exp(-2 * v_goal), -1.0, 1.0)),
         "object_to_goal_dist": box(torch.exp(-2 * g.box_goal_dist / s.init_goal_dist.clamp(min=1e-3))),
         "object_drop": box(MAX_OBJ_HEIGHT - height),

@@ -2,6 +2,12 @@
 reward terms and stage-transition conditions. Shared by every backend.
 
 Shapes: N worlds, R robots. Spatial observations are in each robot's base frame.
+
+Written for CPU speed at thousands of worlds: rotations are spelled out elementwise (batched
+3x3 matmuls of tiny matrices are slow on CPU), and there are no gathers, argmins, norms or
+max(dim) over dims of size 2-3 and no per-call ``torch.tensor`` of constants. The plain
+matmul/gather formulation is kept in ``tests/pnp/_task_reference.py``; the outputs are
+checked equal by ``tests/pnp/test_task_equivalence.py``.
 """
 from __future__ import annotations
 
@@ -10,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
-from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE, STANDING_HEIGHT
+from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
@@ -66,29 +72,77 @@ class PnPState:
     grasp_cmd: torch.Tensor  # [N, R] commanded grasp probability
 
 
+# Constant tensors, built once (CPU, float32).
+_F32 = torch.float32
+_INV_SCALE = 2.0 / (torch.tensor(ACTION_HIGH, dtype=_F32) - torch.tensor(ACTION_LOW, dtype=_F32))  # 1 / half range
+_LIM = torch.tensor(ARM_RANGES, dtype=_F32)
+_MID, _HALF95 = (_LIM[:, 0] + _LIM[:, 1]) / 2, 0.95 * (_LIM[:, 1] - _LIM[:, 0]) / 2
+_ARM_DEFAULT = torch.tensor(ARM_DEFAULT, dtype=_F32)
+# default_reward's weights as a column: one matmul instead of a product and a sum over terms.
+_DEFAULT_MU = torch.tensor(
+    [[0.0 if (t.name in STAGE_GATES or t.name == STAGE_PROGRESS_TERM) else t.mu] for t in REWARD_TABLE], dtype=_F32,
+)
+
+
 def yaw_rotation(yaw: torch.Tensor) -> torch.Tensor:
     c, s = torch.cos(yaw), torch.sin(yaw)
     z, o = torch.zeros_like(yaw), torch.ones_like(yaw)
     return torch.stack([torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1), torch.stack([z, z, o], -1)], -2)
 
 
+class BaseFrame:
+    """Each robot's base frame (yaw about z at the trunk), applied without matmuls.
+
+    Built once per step and shared by :func:`reward_terms` and :func:`observations`. The
+    ``*_xyz`` methods take and return components ([N, R] tensors, or [N, 1] per world):
+    elementwise ops on those avoid the slow CPU paths of ops broadcasting over tiny dims.
+    """
+
+    def __init__(self, s: PnPState):
+        yaw = s.base[..., 2]
+        self.c, self.s = torch.cos(yaw), torch.sin(yaw)  # [N, R]
+        self.ox, self.oy, self.oz = s.base[..., 0], s.base[..., 1], s.base_z
+
+    def rotate_xy(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World vector components (x, y) -> base frame (z is unchanged by a yaw)."""
+        return self.c * x + self.s * y, self.c * y - self.s * x
+
+    def point_xyz(self, x, y, z) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World point components -> base frame: R^T (p - origin)."""
+        bx, by = self.rotate_xy(x - self.ox, y - self.oy)
+        return bx, by, z - self.oz
+
+    def point(self, p: torch.Tensor) -> torch.Tensor:
+        """World points ``p`` [N, R (or 1), ..., 3] -> [N, R, ..., 3]."""
+        extra = p.dim() - 3
+        c, s, ox, oy, oz = (t.reshape(t.shape + (1,) * extra) for t in (self.c, self.s, self.ox, self.oy, self.oz))
+        dx, dy, dz = p[..., 0] - ox, p[..., 1] - oy, p[..., 2] - oz
+        return torch.stack([c * dx + s * dy, c * dy - s * dx, dz], -1)
+
+
+def _dot(a, b):
+    """Dot product of 3-vectors given as components (no reduction over a dim of 3)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _stack(cols, N: int, R: int) -> torch.Tensor:
+    """Columns ([N, R] or per world [N, 1]) -> [N, R, K]."""
+    return torch.stack([c.expand(N, R) for c in cols], -1)
+
+
 def to_base(s: PnPState, p: torch.Tensor) -> torch.Tensor:
     """World points ``p`` [N, R, ..., 3] into each robot's base frame."""
-    origin = torch.cat([s.base[..., :2], s.base_z.unsqueeze(-1)], -1)
-    rot = yaw_rotation(s.base[..., 2])
-    extra = p.dim() - origin.dim()
-    for _ in range(extra):
-        origin, rot = origin.unsqueeze(-2), rot.unsqueeze(-3)
-    return ((p - origin).unsqueeze(-2) @ rot).squeeze(-2)  # R^T (p - o)
+    return BaseFrame(s).point(p)
 
 
 def handles(s: PnPState) -> torch.Tensor:
     """Handle bar centres [N, 2, 3] in the world frame."""
-    a, c = s.box_size[:, 0], s.box_size[:, 2]
-    x = a / 2 - HANDLE_INSET
-    z = c / 2 + HANDLE_HEIGHT
-    local = torch.stack([torch.stack([x, torch.zeros_like(x), z], -1), torch.stack([-x, torch.zeros_like(x), z], -1)], 1)
-    return s.box_pos.unsqueeze(1) + (s.box_rot.unsqueeze(1) @ local.unsqueeze(-1)).squeeze(-1)
+    x = (s.box_size[:, 0] / 2 - HANDLE_INSET).unsqueeze(-1)
+    z = (s.box_size[:, 2] / 2 + HANDLE_HEIGHT).unsqueeze(-1)
+    # box_pos + R @ (+-x, 0, z), with the columns of R (box axes) spelled out.
+    centre = s.box_pos + z * s.box_rot[:, :, 2]
+    off = x * s.box_rot[:, :, 0]
+    return torch.stack([centre + off, centre - off], 1)
 
 
 @dataclass
@@ -108,71 +162,67 @@ class Geometry:
 
 
 def geometry(s: PnPState) -> Geometry:
+    N, R = s.ee_pos.shape[:2]
     h = handles(s)  # [N, 2, 3]
-    d = h.unsqueeze(1) - s.ee_pos.unsqueeze(2)  # [N, R, 2, 3]
-    k = d.norm(dim=-1).argmin(-1)  # [N, R]
-    idx = k[..., None, None].expand(-1, -1, 1, 3)
-    handle = torch.gather(h.unsqueeze(1).expand(-1, s.ee_pos.shape[1], -1, -1), 2, idx).squeeze(2)
-    ee_handle = torch.gather(d, 2, idx).squeeze(2)
-    bar_axis = s.box_rot[:, :, 1].unsqueeze(1)  # box y axis, [N, 1, 3]
+    # Vectors as components; world quantities are [N, 1] columns broadcasting over robots.
+    ee = s.ee_pos.unbind(-1)
+    h0, h1 = h[:, None, 0].unbind(-1), h[:, None, 1].unbind(-1)
+    d0 = [a - b for a, b in zip(h0, ee)]
+    d1 = [a - b for a, b in zip(h1, ee)]
+    k1 = _dot(d1, d1) < _dot(d0, d0)  # strict: ties pick handle 0, as argmin does
+    ee_handle = [torch.where(k1, a, b) for a, b in zip(d1, d0)]
+    handle = _stack([torch.where(k1, a, b) for a, b in zip(h1, h0)], N, R)
+    bar_axis = s.box_rot[:, None, :, 1].unbind(-1)  # box y axis
     # Aligned when the gripper's closing axis (its y) is perpendicular to the bar.
-    closing = s.ee_rot[..., :, 1]
-    align = 1.0 - (closing * bar_axis).sum(-1).abs()
+    align = 1.0 - _dot(s.ee_rot[..., :, 1].unbind(-1), bar_axis).abs()
     half_len = torch.clamp(0.6 * s.box_size[:, 1], max=HANDLE_LEN).unsqueeze(1) / 2
-    along = (ee_handle * bar_axis).sum(-1)
-    perp = ee_handle - along.unsqueeze(-1) * bar_axis
+    along = _dot(ee_handle, bar_axis)
+    perp = [e - along * b for e, b in zip(ee_handle, bar_axis)]
     excess = torch.clamp(along.abs() - half_len, min=0.0)
-    bar_dist = torch.sqrt((perp**2).sum(-1) + excess**2)
-    closed = s.grasp_cmd > 0.5
-    grasped = closed & s.touch.all(-1) & (bar_dist < GRASP_DIST)
-    bottom = s.box_pos[:, 2] - _half_height(s)
-    gd = (s.box_pos[:, :2] - s.goal).norm(dim=-1)
+    bar_dist = torch.sqrt(_dot(perp, perp) + excess * excess)
+    grasped = (s.grasp_cmd > 0.5) & s.touch[..., 0] & s.touch[..., 1] & (bar_dist < GRASP_DIST)
+    # Half extent of the (possibly tilted) box along world z: row 2 of 0.5 |R| @ size.
+    bottom = s.box_pos[:, 2] - 0.5 * _dot(s.box_rot[:, 2].abs().unbind(-1), s.box_size.unbind(-1))
+    gd = torch.hypot(s.box_pos[:, 0] - s.goal[:, 0], s.box_pos[:, 1] - s.goal[:, 1])
     return Geometry(
-        handle=handle, ee_handle=ee_handle, align=align, bar_dist=bar_dist, grasped=grasped,
+        handle=handle, ee_handle=torch.stack(ee_handle, -1), align=align, bar_dist=bar_dist, grasped=grasped,
         box_lift=bottom, box_goal_dist=gd, box_in_goal=gd < GOAL_RADIUS, box_on_floor=bottom < ON_FLOOR,
         fell=s.base_z < FALL_HEIGHT,
     )
 
 
-def _half_height(s: PnPState) -> torch.Tensor:
-    # Half extent of the (possibly tilted) box along world z.
-    return 0.5 * (s.box_rot.abs() @ s.box_size.unsqueeze(-1)).squeeze(-1)[:, 2]
-
-
 def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
     """Bool [N, R, len(CONDITIONS)]; column i is the condition of edge S_i -> S_{i+1}."""
-    R = s.ee_pos.shape[1]
     dz = -g.ee_handle[..., 2]  # EE above the handle axis
-    ready = (g.ee_handle[..., :2].norm(dim=-1) < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
-    box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731  shared box conditions
-    lifted = g.grasped & box(g.box_lift > LIFT_HEIGHT)
-    on_goal = lifted & box(g.box_in_goal)
-    placed = g.grasped & box(g.box_on_floor & g.box_in_goal)
-    released = ~g.grasped & (s.grasp_cmd < 0.5) & box(g.box_on_floor & g.box_in_goal)
+    xy = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
+    ready = (xy < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
+    # Box conditions are [N, 1] and broadcast over the robots.
+    lift = (g.box_lift > LIFT_HEIGHT).unsqueeze(1)
+    in_goal = g.box_in_goal.unsqueeze(1)
+    placed_box = (g.box_on_floor & g.box_in_goal).unsqueeze(1)
+    lifted = g.grasped & lift
+    on_goal = lifted & in_goal
+    placed = g.grasped & placed_box
+    released = ~g.grasped & (s.grasp_cmd < 0.5) & placed_box
     out = torch.stack([ready, g.grasped, lifted, on_goal, placed, released], -1)
     assert out.shape[-1] == len(CONDITIONS)
     return out
 
 
-def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: torch.Tensor, cond: torch.Tensor,
+                 frame: BaseFrame | None = None) -> torch.Tensor:
     """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.terms.REWARD_TERMS``."""
     R = s.ee_pos.shape[1]
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731
     p = s.grasp_cmd
-    grabbed = g.grasped.float()
     height = torch.clamp(g.box_lift, 0.0, MAX_OBJ_HEIGHT)
-    to_goal = torch.cat([s.goal - s.box_pos[:, :2], torch.zeros_like(s.goal[:, :1])], -1)
-    to_goal = to_goal / to_goal.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-    v_goal = (s.box_vel[:, :3] * to_goal).sum(-1)
-    lo, hi = _action_bounds(action)
-    scale = (hi - lo) / 2
-    lim = torch.tensor(ARM_RANGES, dtype=s.arm_q.dtype)
-    mid, half = (lim[:, 0] + lim[:, 1]) / 2, (lim[:, 1] - lim[:, 0]) / 2
-    collision = _collisions(s)
+    tx, ty = s.goal[:, 0] - s.box_pos[:, 0], s.goal[:, 1] - s.box_pos[:, 1]
+    v_goal = (s.box_vel[:, 0] * tx + s.box_vel[:, 1] * ty) / torch.hypot(tx, ty).clamp(min=1e-6)
+    dq = s.arm_q - _ARM_DEFAULT
     terms = {
-        "gripper_ready_pose": torch.exp(-3 * g.ee_handle[..., :2].norm(dim=-1)) * g.align,
+        "gripper_ready_pose": torch.exp(-3 * torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])) * g.align,
         "gripper_grasp_pose": torch.exp(-10 * g.ee_handle[..., 2].abs()) * g.align,
-        "object_grabbed": grabbed,
+        "object_grabbed": g.grasped.float(),
         "grab_action": torch.where(g.grasped, p, 1 - p),
         "object_height": box(height),
         "object_to_goal_vel": box(torch.clamp(1 - torch.exp(-2 * v_goal), -1.0, 1.0)),
@@ -181,67 +231,62 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "grab_action_in_range": torch.clamp(0.5 - p, min=0.0),
         "object_released_in_goal": cond[..., 5].float(),
         "stage_progress": torch.zeros_like(p),
-        "arm_default_pose": torch.exp(-2 * (s.arm_q - torch.tensor(ARM_DEFAULT, dtype=p.dtype)).norm(dim=-1)),
-        "action_rate": (((action - last_action) / scale) ** 2).sum(-1),
-        "collision": collision,
-        "joint_limits": torch.clamp((s.arm_q - mid).abs() - 0.95 * half, min=0.0).sum(-1),
+        "arm_default_pose": torch.exp(-2 * torch.sqrt((dq * dq).sum(-1))),
+        "action_rate": (((action - last_action) * _INV_SCALE) ** 2).sum(-1),
+        "collision": _collisions(s, frame or BaseFrame(s)),
+        "joint_limits": torch.clamp((s.arm_q - _MID).abs() - _HALF95, min=0.0).sum(-1),
         "fall": g.fell.float(),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 
 
-def _action_bounds(action):
-    lo = torch.tensor(ACTION_LOW, dtype=action.dtype, device=action.device)
-    hi = torch.tensor(ACTION_HIGH, dtype=action.dtype, device=action.device)
-    return lo, hi
-
-
-def _collisions(s: PnPState) -> torch.Tensor:
+def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
     """Proxy for trunk/leg-box and robot-robot contact: 1.0 while overlapping, per robot."""
-    box_b = to_base(s, s.box_pos.unsqueeze(1).expand_as(s.ee_pos))  # [N, R, 3]
-    reach = s.box_size[:, None, :2].max(-1).values / 2
-    hit_box = (box_b[..., 0].abs() < 0.55 + reach) & (box_b[..., 1].abs() < 0.35 + reach)
-    hit = hit_box
+    bx, by, _ = (frame or BaseFrame(s)).point_xyz(*s.box_pos[:, None].unbind(-1))  # [N, R]
+    # torch.maximum, not max(-1) over a dim of 2: reductions there can stall for ms on CPU.
+    reach = torch.maximum(s.box_size[:, 0], s.box_size[:, 1]).unsqueeze(1) / 2
+    hit = (bx.abs() < 0.55 + reach) & (by.abs() < 0.35 + reach)
     if s.base.shape[1] == 2:
-        d = (s.base[:, 0, :2] - s.base[:, 1, :2]).norm(dim=-1) < 1.0
-        hit = hit | d.unsqueeze(1)
+        dx, dy = s.base[:, 0, 0] - s.base[:, 1, 0], s.base[:, 0, 1] - s.base[:, 1, 1]
+        hit = hit | (torch.hypot(dx, dy) < 1.0).unsqueeze(1)
     return hit.float()
 
 
-def observations(s: PnPState, g: Geometry, last_action: torch.Tensor) -> dict[str, torch.Tensor]:
+def observations(s: PnPState, g: Geometry, last_action: torch.Tensor,
+                 frame: BaseFrame | None = None) -> dict[str, torch.Tensor]:
     """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`)."""
+    # Built from [N, R] / [N, 1] component columns, stacked once per block.
+    frame = frame or BaseFrame(s)
     N, R = s.ee_pos.shape[:2]
-    rot = yaw_rotation(s.base[..., 2])
-    vel_b = (s.base_vel[..., :2].unsqueeze(-2) @ rot[..., :2, :2]).squeeze(-2)
-    ee_b = to_base(s, s.ee_pos)
-    ee_rot_b = rot.transpose(-1, -2) @ s.ee_rot
-    ee_yaw = torch.atan2(-ee_rot_b[..., 0, 1], ee_rot_b[..., 1, 1])
-    opening = s.finger_q.mean(-1, keepdim=True) / FINGER_STROKE
-    ego = torch.cat([
-        vel_b, s.base_vel[..., 2:], s.arm_q, s.arm_qd * 0.1, ee_b, torch.sin(ee_yaw)[..., None], torch.cos(ee_yaw)[..., None],
-        opening, s.touch.float(), last_action,
-    ], -1)
-    goal3 = torch.cat([s.goal, torch.zeros_like(s.goal[:, :1])], -1).unsqueeze(1).expand(N, R, 3)
-    goal_b = to_base(s, goal3)[..., :2]
-    goal = torch.cat([goal_b, goal_b.norm(dim=-1, keepdim=True)], -1)
-    h = handles(s).unsqueeze(1).expand(N, R, 2, 3)
-    box_rot_b = rot.transpose(-1, -2) @ s.box_rot.unsqueeze(1)
-    lin_b = (s.box_vel[:, None, None, :3] @ rot).squeeze(-2)
-    ang_b = (s.box_vel[:, None, None, 3:] @ rot).squeeze(-2)
-    h_b = to_base(s, h)
-    obj = torch.cat([
-        to_base(s, s.box_pos.unsqueeze(1).expand(N, R, 3)), box_rot_b[..., :, 0], box_rot_b[..., :, 1],
-        lin_b, ang_b, h_b.flatten(-2), (h_b - ee_b.unsqueeze(-2)).flatten(-2), s.box_size.unsqueeze(1).expand(N, R, 3),
-    ], -1)
+    c, sn = frame.c, frame.s
+    ee = frame.point_xyz(*s.ee_pos.unbind(-1))
+    # EE yaw in the base frame from column 1 of R_base^T @ ee_rot.
+    e01, e11 = s.ee_rot[..., 0, 1], s.ee_rot[..., 1, 1]
+    ee_yaw = torch.atan2(-(c * e01 + sn * e11), c * e11 - sn * e01)
+    opening = (s.finger_q[..., 0] + s.finger_q[..., 1]) * (0.5 / FINGER_STROKE)
+    touch = s.touch.float().unbind(-1)
+    small = _stack([*frame.rotate_xy(s.base_vel[..., 0], s.base_vel[..., 1]), s.base_vel[..., 2], *ee,
+                    torch.sin(ee_yaw), torch.cos(ee_yaw), opening, *touch], N, R)
+    ego = torch.cat([small[..., :3], s.arm_q, s.arm_qd * 0.1, small[..., 3:], last_action], -1)
+    gx, gy = frame.rotate_xy(s.goal[:, None, 0] - frame.ox, s.goal[:, None, 1] - frame.oy)
+    goal = _stack([gx, gy, torch.hypot(gx, gy)], N, R)
+    h = handles(s)
+    h_b = [frame.point_xyz(*h[:, None, k].unbind(-1)) for k in range(2)]
+    axes_vel = []  # box x, y axes (columns of box_rot), linear and angular velocity
+    for v in (s.box_rot[:, None, :, 0], s.box_rot[:, None, :, 1], s.box_vel[:, None, :3], s.box_vel[:, None, 3:]):
+        axes_vel += [*frame.rotate_xy(v[..., 0], v[..., 1]), v[..., 2]]
+    obj = _stack([
+        *frame.point_xyz(*s.box_pos[:, None].unbind(-1)), *axes_vel, *h_b[0], *h_b[1],
+        *(a - b for a, b in zip(h_b[0], ee)), *(a - b for a, b in zip(h_b[1], ee)), *s.box_size[:, None].unbind(-1),
+    ], N, R)
     if R == 2:
-        other = torch.tensor([1, 0])
-        o_base = torch.cat([s.base[:, other, :2], s.base_z[:, other, None]], -1)
-        rel = to_base(s, o_base)[..., :2]
-        dyaw = s.base[:, other, 2] - s.base[..., 2]
-        neigh = torch.cat([
-            rel, torch.sin(dyaw)[..., None], torch.cos(dyaw)[..., None], to_base(s, s.ee_pos[:, other]),
-            opening[:, other], s.touch[:, other].float(),
-        ], -1)
+        other = lambda x: x.flip(1)  # noqa: E731  the other robot's value; flip [N, 2] columns, not [N, 2, 3]
+        bx, by, byaw = s.base.unbind(-1)
+        dyaw = other(byaw) - byaw
+        neigh = _stack([
+            *frame.rotate_xy(other(bx) - frame.ox, other(by) - frame.oy), torch.sin(dyaw), torch.cos(dyaw),
+            *frame.point_xyz(*(other(x) for x in s.ee_pos.unbind(-1))), other(opening), *(other(t) for t in touch),
+        ], N, R)
     else:
         neigh = torch.zeros(N, R, OBS_BLOCKS["neighbour"], dtype=ego.dtype)
     return {"ego": ego, "goal": goal, "object": obj, "neighbour": neigh}
@@ -249,5 +294,4 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor) -> dict[st
 
 def default_reward(terms: torch.Tensor) -> torch.Tensor:
     """The env's own reward with no curriculum: every term at mu_j (stage-dependent ones off)."""
-    w = [0.0 if (t.name in STAGE_GATES or t.name == STAGE_PROGRESS_TERM) else t.mu for t in REWARD_TABLE]
-    return (terms * torch.tensor(w, dtype=terms.dtype)).sum(-1, keepdim=True)
+    return terms @ _DEFAULT_MU.to(terms.dtype)

@@ -1,0 +1,285 @@
+"""Steps shared by the recipes: env + curriculum, MAPPO models, rollouts, metrics, checkpoints."""
+from __future__ import annotations
+
+import math
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from tensordict.nn import InteractionType, NormalParamExtractor, TensorDictModule, set_interaction_type
+from torch import nn
+from torchrl.envs import Compose, StepCounter, TransformedEnv
+from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, TanhNormal
+from torchrl.modules.value_norm import ValueNorm
+from torchrl.objectives import MAPPOLoss
+
+from pnp.envs.pnp_env import PnPEnv
+from pnp.stage_graph import pnp_default_stage_graph, pnp_default_reward_config
+from pnp.task import HL_DT
+from pnp.transforms import StageTransition, make_reward_schedule
+
+OBS = ("agents", "observation")
+STAGE_ONE_HOT = ("agents", "stage_one_hot")
+ACTION = ("agents", "action")
+LOG_PROB = ("agents", "action_log_prob")
+VALUE = ("agents", "state_value")
+LOC, SCALE = ("agents", "loc"), ("agents", "scale")
+EPISODE_STAGE = ("agents", "episode_stage")
+N_STAGES = pnp_default_stage_graph().n_stages
+
+
+# --- env -----------------------------------------------------------------------------------
+def schedule_args(cur: DictConfig) -> tuple[str, dict]:
+    """Name and kwargs of ``make_reward_schedule`` for a ``curriculum`` config."""
+    cfg = pnp_default_reward_config()
+    if not cur.stage_rewards:
+        # Control run: only R_fixed; every stage-wise term becomes a fixed term of weight 0.
+        cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})
+        cfg.update(term_stage={}, mu={})
+        return "fixed", cfg
+    cfg.update(K=float(cur.K), mu_min=float(cur.mu_min), final_after=int(cur.final_after))
+    return str(cur.schedule), cfg
+
+
+def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> TransformedEnv:
+    """``PnPEnv`` wrapped in StepCounter -> StageTransition -> reward schedule."""
+    base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
+                  backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"))
+    name, sched = schedule_args(cur_cfg)
+    return TransformedEnv(base, Compose(
+        # Before StageTransition: a shorter episode limit sets done, which ends the stage.
+        StepCounter(max_steps=env_cfg.get("max_episode_steps")),
+        StageTransition(pnp_default_stage_graph(), one_hot_key=STAGE_ONE_HOT),
+        make_reward_schedule(name, **sched),
+    ))
+
+
+def schedule_of(env: TransformedEnv):
+    return env.transform[-1]
+
+
+# --- models ----------------------------------------------------------------------------------
+class ObsNorm(nn.Module):
+    """Running mean and std of the observation (Chan's parallel update), clipped to +-5.
+
+    Positions in metres spread over ~10 m next to unit-scale flags; normalised inputs
+    speed PPO up markedly. Moves only in :meth:`update`, once per iteration after the
+    PPO epochs, so a batch is collected and trained on with the same statistics.
+    """
+
+    def __init__(self, n: int, clip: float = 5.0):
+        super().__init__()
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(n))
+        self.register_buffer("var", torch.ones(n))
+        self.register_buffer("count", torch.zeros(()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.mean) / self.var.sqrt().clamp(min=1e-2)).clamp(-self.clip, self.clip)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        x = x.reshape(-1, x.shape[-1]).double()
+        n, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_((self.var * self.count + var * n + delta**2 * self.count * n / total) / total)
+        self.mean.add_(delta * n / total)
+        self.count.fill_(total)
+
+
+class AgentNet(nn.Module):
+    """A MultiAgentMLP over [normalised observation | stage one-hot]: the teacher sees its stage."""
+
+    def __init__(self, n_in: int, n_out: int, n_agents: int, centralised: bool, cells, head: nn.Module | None = None,
+                 obs_norm: ObsNorm | None = None):
+        super().__init__()
+        self.obs_norm = obs_norm if obs_norm is not None else nn.Identity()
+        self.mlp = MultiAgentMLP(n_agent_inputs=n_in, n_agent_outputs=n_out, n_agents=n_agents, centralized=centralised,
+                                 share_params=True, num_cells=list(cells), activation_class=nn.Tanh)
+        self.head = head if head is not None else nn.Identity()
+
+    def forward(self, obs: torch.Tensor, stage: torch.Tensor):
+        return self.head(self.mlp(torch.cat([self.obs_norm(obs), stage], -1)))
+
+
+class PopArt(nn.Module):
+    """Critic head: an affine map in normalised space, read out at the real return scale.
+
+    Why: the curriculum moves reward scales by orders of magnitude within a run (rho_j
+    from mu_min = 0.1 up to mu_j = 100), so returns drift from ~1 to ~1e3. PopArt (van
+    Hasselt et al. 2016) keeps the regression target at unit scale, and when its statistics
+    move it rescales this head so the values it predicts stay the same ("preserving
+    outputs"), which plain running return normalisation does not. Statistics move once per
+    iteration (:meth:`update`), never inside the loss.
+    """
+
+    def __init__(self, beta: float):
+        super().__init__()
+        self.stats = PopArtValueNorm(shape=1, beta=beta)
+        self.weight = nn.Parameter(torch.ones(1))
+        self.bias = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.stats.denormalize(x * self.weight + self.bias)
+
+    @torch.no_grad()
+    def update(self, targets: torch.Tensor) -> None:
+        first = bool(self.stats.debiasing_term == 0)  # nothing to preserve yet
+        m0, s0 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
+        self.stats.update(targets.reshape(-1, 1))
+        if not first:
+            m1, s1 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
+            self.weight.mul_(s0 / s1)
+            self.bias.copy_((s0 * self.bias + m0 - m1) / s1)
+
+
+class _PopArtLossNorm(ValueNorm):
+    """PopArt statistics seen by MAPPOLoss, read-only (they move in ``PopArt.update``)."""
+
+    def __init__(self, popart: PopArt):
+        super().__init__(shape=1)
+        self.__dict__["popart"] = popart  # not a submodule: its state lives in the critic
+
+    def update(self, value_target):
+        pass
+
+    def normalize(self, value_target):
+        return self.popart.stats.normalize(value_target)
+
+    def denormalize(self, normalised_value):
+        return self.popart.stats.denormalize(normalised_value)
+
+    def scale(self):
+        return self.popart.stats.scale()
+
+
+def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, popart_beta: float):
+    """Decentralised actor with shared parameters; critic centralised iff there are 2 robots."""
+    base = env.base_env
+    n_agents = base.num_robots
+    n_obs = env.observation_spec[OBS].shape[-1]
+    n_in = n_obs + N_STAGES
+    spec = env.full_action_spec_unbatched[ACTION]
+    obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None  # one instance, shared by actor and critic
+    actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
+                         head=NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}"))
+    actor = ProbabilisticActor(
+        TensorDictModule(actor_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[LOC, SCALE]),
+        in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=TanhNormal,
+        distribution_kwargs={"low": spec.space.low, "high": spec.space.high}, return_log_prob=True,
+        log_prob_key=LOG_PROB,
+    )
+    popart = PopArt(popart_beta) if value_norm == "popart" else None
+    critic_net = AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells, head=popart, obs_norm=obs_norm)
+    critic = TensorDictModule(critic_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[VALUE])
+    return actor, critic, popart, obs_norm
+
+
+def make_loss(loss_cfg: DictConfig, actor, critic, popart: PopArt | None) -> MAPPOLoss:
+    loss = MAPPOLoss(
+        actor, critic, value_norm=_PopArtLossNorm(popart) if popart is not None else None,
+        clip_epsilon=float(loss_cfg.clip_epsilon), entropy_coeff=float(loss_cfg.entropy_coeff),
+        critic_coeff=float(loss_cfg.critic_coeff), loss_critic_type=str(loss_cfg.loss_critic_type),
+        functional=False,  # PopArt rescales the critic's own parameters in place
+    )
+    loss.set_keys(reward=("agents", "reward"), action=ACTION, sample_log_prob=LOG_PROB, value=VALUE,
+                  advantage=("agents", "advantage"), value_target=("agents", "value_target"),
+                  done="done", terminated="terminated")
+    loss.make_value_estimator(gamma=float(loss_cfg.gamma), lmbda=float(loss_cfg.lmbda))
+    return loss
+
+
+# --- data --------------------------------------------------------------------------------------
+def collect(env: TransformedEnv, policy, carried: TensorDictBase, steps: int) -> tuple[TensorDictBase, TensorDictBase]:
+    """``steps`` steps of every world from ``carried``; returns the [N, T] batch and the next carried td.
+
+    The loop the Collector runs (step_and_maybe_reset), kept here because its carried td
+    is the one piece of state a bit-for-bit resume needs and ``Collector.state_dict`` does
+    not hold it (its constructor even resets the env).
+    """
+    out = []
+    # Sampled actions: ProbabilisticActor's default interaction type is deterministic.
+    with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
+        for _ in range(steps):
+            carried = policy(carried)
+            td, carried = env.step_and_maybe_reset(carried)
+            out.append(td)
+    return torch.stack(out, -1), carried
+
+
+def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
+    """Success rate, mean end-of-episode stage and stage shares of the episodes that ended."""
+    nxt = batch["next"]
+    done = nxt["done"].squeeze(-1)
+    stage = nxt[EPISODE_STAGE]
+    ended = stage[stage >= 0]
+    n = int(done.sum())
+    out = {"episodes": float(n), "reward": float(nxt["agents", "reward"].mean())}
+    out["success_rate"] = float(nxt["success"].squeeze(-1)[done].float().mean()) if n else math.nan
+    out["mean_end_stage"] = float(ended.float().mean()) if ended.numel() else math.nan
+    hist = torch.bincount(ended, minlength=N_STAGES).float()
+    for i, h in enumerate(hist):
+        out[f"stage_share/S{i}"] = float(h / hist.sum()) if ended.numel() else math.nan
+    return out
+
+
+def policy_kl(actor, td: TensorDictBase) -> float:
+    """Mean KL(behaviour || current) of the pre-tanh Gaussians: the TanhNormal KL, as tanh is a bijection."""
+    with torch.no_grad():
+        new = actor.module[0](td.select(OBS, STAGE_ONE_HOT).copy())
+    mu0, s0, mu1, s1 = td[LOC].detach(), td[SCALE].detach(), new[LOC], new[SCALE]
+    kl = torch.log(s1 / s0) + (s0**2 + (mu0 - mu1) ** 2) / (2 * s1**2) - 0.5
+    return float(kl.sum(-1).mean())
+
+
+def seconds(steps) -> float:
+    return float(steps) * HL_DT
+
+
+# --- checkpoints and RNG ---------------------------------------------------------------------------
+def rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """Atomic: a run killed while writing keeps its previous checkpoint."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    return torch.load(path, weights_only=False, map_location="cpu")  # our own files
+
+
+def resolve_checkpoint(spec, runs_root: str | Path) -> Path:
+    """``true``/``latest``: the newest ``checkpoint.pt`` under ``runs_root``; a run folder; or a file."""
+    if spec is True or str(spec).lower() in ("true", "latest"):
+        found = sorted(Path(runs_root).glob("**/checkpoint.pt"), key=lambda p: p.stat().st_mtime)
+        if not found:
+            raise FileNotFoundError(f"no checkpoint.pt under {Path(runs_root).resolve()}")
+        return found[-1]
+    path = Path(str(spec))
+    if path.is_dir():
+        path = path / "checkpoint.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    return path

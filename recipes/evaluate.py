@@ -1,0 +1,168 @@
+"""Evaluate a trained teacher over N trials with the deterministic policy (paper Table I).
+
+    python recipes/evaluate.py                                   # newest runs/**/checkpoint.pt, 500 trials
+    python recipes/evaluate.py checkpoint=runs/<run> trials=100 env.backend=kinematic out=results/eval.json
+
+Episodes start from the env's randomised layouts (seeded by ``seed``) and end on success,
+a fall or the 45 s limit. With W worlds each world runs ceil(N / W) episodes; the first N
+to finish (by step, then world index) are the trials. Writes a JSON file and a markdown
+table in the format of Table I (default: beside the checkpoint, ``eval_<backend>.json|md``).
+
+Failure causes: every failed trial gets exactly one, the first that applies of
+
+* ``fall``: the episode terminated without success because a robot fell (the env's fall
+  term, base below ``pnp.task.FALL_HEIGHT``, is set at the last step);
+* ``diverged``: the physics diverged and the env restarted the world (MuJoCo only);
+* ``dropped_box``: the box was lifted at some step of the episode (stage condition
+  ``object_lifted`` held for some robot), success was never reached, and at the last step
+  no robot holds it (``object_grabbed`` false for all) and its centre is at least
+  ``GOAL_RADIUS`` from the goal: a box nobody holds lies on the floor, outside the goal;
+* ``timeout``: every other failure; the time limit passed (box never lifted, still held,
+  or set down inside the goal but not released).
+
+Completion time is steps x 0.1 s over successful trials (mean and population std).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import InteractionType, set_interaction_type
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import (  # noqa: E402
+    N_STAGES, load_checkpoint, make_env, make_models, resolve_checkpoint, seconds, seed_everything,
+)
+from _provenance import provenance  # noqa: E402
+
+from pnp.scene import GOAL_RADIUS  # noqa: E402
+from pnp.terms import CONDITIONS, REWARD_TERMS  # noqa: E402
+
+LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
+FALL = REWARD_TERMS.index("fall")
+CAUSES = ("fall", "diverged", "dropped_box", "timeout")
+
+
+def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, step: int) -> list[dict]:
+    """One record per world in ``worlds`` whose episode ended at this step."""
+    cond = nxt["agents", "stage_conditions"][worlds]
+    box_goal = (nxt["agents", "object"][worlds, 0, :2] - nxt["agents", "goal"][worlds, 0, :2]).norm(dim=-1)
+    fell = nxt["agents", "reward_terms"][worlds][..., FALL].bool().any(-1)
+    success = nxt["success"][worlds, 0]
+    held = cond[..., GRABBED].any(-1)
+    dropped = lifted[worlds] & ~held & (box_goal >= GOAL_RADIUS)
+    rows = []
+    for i, w in enumerate(worlds.tolist()):
+        cause = None
+        if not success[i]:
+            flags = {"fall": bool(fell[i]) and bool(nxt["terminated"][w, 0]), "diverged": bool(nxt["diverged"][w, 0]),
+                     "dropped_box": bool(dropped[i])}
+            cause = next((c for c in CAUSES[:-1] if flags[c]), "timeout")
+        rows.append({"world": w, "end_step": step, "success": bool(success[i]), "cause": cause,
+                     "steps": int(nxt["step_count"][w, 0]), "end_stage": int(nxt["agents", "episode_stage"][w].max())})
+    return rows
+
+
+def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
+    """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order."""
+    n_worlds = env.base_env.num_worlds
+    per_world = math.ceil(trials / n_worlds)
+    count = torch.zeros(n_worlds, dtype=torch.long)
+    lifted = torch.zeros(n_worlds, dtype=torch.bool)
+    records, step = [], 0
+    bar = tqdm(total=trials, disable=not progress, desc="trials")
+    td = env.reset()
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        while bool((count < per_world).any()):
+            td = actor(td)
+            out, td = env.step_and_maybe_reset(td)
+            nxt, step = out["next"], step + 1
+            lifted |= nxt["agents", "stage_conditions"][..., LIFTED].any(-1)
+            done = nxt["done"].view(n_worlds)
+            worlds = (done & (count < per_world)).nonzero().view(-1)
+            if len(worlds):
+                records += _end_records(nxt, worlds, lifted, step)
+                count[worlds] += 1
+                bar.update(min(len(worlds), max(0, trials - bar.n)))
+            lifted &= ~done
+    bar.close()
+    records.sort(key=lambda r: (r["end_step"], r["world"]))
+    return records[:trials]
+
+
+def summarise(records: list[dict]) -> dict:
+    times = np.array([seconds(r["steps"]) for r in records if r["success"]])
+    stages = np.bincount([r["end_stage"] for r in records], minlength=N_STAGES)
+    return {
+        "trials": len(records),
+        "success_rate": float(np.mean([r["success"] for r in records])) if records else math.nan,
+        "completion_time_mean_s": float(times.mean()) if len(times) else None,
+        "completion_time_std_s": float(times.std()) if len(times) else None,
+        "failure_causes": {c: sum(r["cause"] == c for r in records) for c in CAUSES},
+        "mean_end_stage": float(np.mean([r["end_stage"] for r in records])) if records else math.nan,
+        "end_stage_counts": {f"S{i}": int(c) for i, c in enumerate(stages)},
+    }
+
+
+def table_md(result: dict, method: str) -> str:
+    """A Table I row: Method | Success rate (%) | Completion time (s)."""
+    t = result["completion_time_mean_s"]
+    time_s = "-" if t is None else f"{t:.2f} ± {result['completion_time_std_s']:.2f}"
+    group = "Single-robot PnP" if result["num_robots"] == 1 else "Dual-robot PnP"
+    causes = ", ".join(f"{k} {v}" for k, v in result["failure_causes"].items())
+    return (
+        "| Method | Success rate (%) | Completion time (s) |\n| --- | --- | --- |\n"
+        f"| *{group}* | | |\n| {method} | {100 * result['success_rate']:.1f} | {time_s} |\n\n"
+        f"{result['trials']} trials on the {result['backend']} backend, seed {result['seed']}; failures: {causes}.\n"
+        f"Checkpoint `{result['checkpoint']}` (iteration {result['checkpoint_iteration']}).\n"
+    )
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+    ckpt = load_checkpoint(ckpt_path)
+    tcfg = OmegaConf.create(ckpt["cfg"])
+    env_cfg = tcfg.env.copy()
+    env_cfg.backend = cfg.env.backend or tcfg.env.backend
+    env_cfg.num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
+    env_cfg.nthread, env_cfg.max_episode_steps = cfg.env.nthread, cfg.env.max_episode_steps
+    t0 = time.monotonic()
+    seed_everything(int(cfg.seed))
+    env = make_env(env_cfg, tcfg.curriculum, int(cfg.seed))
+    actor, *_ = make_models(tcfg.model, env, tcfg.loss.value_norm, float(tcfg.loss.popart_beta))
+    actor.load_state_dict(ckpt["actor"])
+    records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
+    env.close()
+    result = {
+        "backend": env_cfg.backend, "num_robots": int(env_cfg.num_robots), "num_worlds": int(env_cfg.num_worlds),
+        **summarise(records), "seed": int(cfg.seed), "checkpoint": str(ckpt_path),
+        "checkpoint_iteration": int(ckpt["counters"]["iteration"]), "checkpoint_frames": int(ckpt["counters"]["frames"]),
+        "schedule": tcfg.curriculum.schedule if tcfg.curriculum.stage_rewards else "none",
+        "wall_s": time.monotonic() - t0, **provenance(),
+    }
+    out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env_cfg.backend}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})"
+    out.with_suffix(".md").write_text(table_md(result, method))
+    result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
+    return result
+
+
+@hydra.main(config_path="config", config_name="evaluate", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    result = evaluate(cfg)
+    print(Path(result["markdown"]).read_text())
+    print(f"wrote {result['json']}")
+
+
+if __name__ == "__main__":
+    main()

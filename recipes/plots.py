@@ -1,0 +1,82 @@
+"""Training plots from a run's ``metrics.jsonl``; train.py calls this at the end of a run.
+
+    python recipes/plots.py runs/<run>/metrics.jsonl [out_dir]
+
+Writes ``mean_end_stage.png`` (mean end-of-episode stage vs iteration), ``stage_shares.png``
+(share of episodes ending in each stage, stacked) and ``rho.png`` (mean rho_j per term;
+only for the dynamic schedule).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def load_metrics(path: str | Path) -> list[dict]:
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
+def _series(rows: list[dict], key: str) -> np.ndarray:
+    return np.array([r.get(key, math.nan) for r in rows], dtype=float)
+
+
+def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -> list[Path]:
+    """Write the PNGs next to the metrics (or into ``out_dir``); returns their paths."""
+    rows = load_metrics(metrics_path) if Path(metrics_path).is_file() else []
+    out_dir = Path(out_dir) if out_dir is not None else Path(metrics_path).parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if not rows:
+        return []
+    it = _series(rows, "iteration")
+    written = []
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    stage = _series(rows, "mean_end_stage")
+    ok = np.isfinite(stage)  # iterations where no episode ended have no value
+    ax.plot(it[ok], stage[ok])
+    ax.set(xlabel="iteration", ylabel="mean end-of-episode stage", ylim=(0, 6.2))
+    ax.grid(alpha=0.3)
+    written.append(_save(fig, out_dir / "mean_end_stage.png"))
+
+    shares = sorted({k for r in rows for k in r if k.startswith("stage_share/")}, key=lambda k: int(k.split("S")[-1]))
+    if shares:
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        ys = np.stack([_series(rows, k) for k in shares])
+        ok = np.isfinite(ys).all(0)
+        ax.stackplot(it[ok], ys[:, ok], labels=[k.split("/")[-1] for k in shares])
+        ax.set(xlabel="iteration", ylabel="share of episodes ending in stage", ylim=(0, 1))
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
+        written.append(_save(fig, out_dir / "stage_shares.png"))
+
+    rho = sorted({k for r in rows for k in r if k.startswith("rho/")})
+    if rho:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for k in rho:
+            ax.plot(it, _series(rows, k), label=k.split("/", 1)[1])
+        ax.set(xlabel="iteration", ylabel="mean rho_j (over worlds and robots)", yscale="log")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=7)
+        ax.grid(alpha=0.3, which="both")
+        written.append(_save(fig, out_dir / "rho.png"))
+    return written
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+if __name__ == "__main__":
+    if len(sys.argv) not in (2, 3):
+        sys.exit(__doc__)
+    for p in plot_training(sys.argv[1], sys.argv[2] if len(sys.argv) == 3 else None):
+        print(p)

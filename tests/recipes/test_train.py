@@ -1,0 +1,168 @@
+"""recipes/train.py and recipes/evaluate.py end to end on the kinematic backend (a few seconds each)."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "recipes"))
+import _common  # noqa: E402
+import evaluate as evaluate_recipe  # noqa: E402
+import plots  # noqa: E402
+import train as train_recipe  # noqa: E402
+
+from pnp.scripted import ScriptedPnP  # noqa: E402
+from pnp.terms import CONDITIONS, REWARD_TERMS  # noqa: E402
+
+CONFIG_DIR = str(ROOT / "recipes" / "config")
+TINY = [
+    "env.backend=kinematic", "env.num_worlds=4", "env.max_episode_steps=6", "collect.frames_per_batch=40",
+    "collect.minibatch_size=20", "collect.num_epochs=2", "model.actor_cells=[32,32]", "model.critic_cells=[32,32]",
+    "logger.backend=csv", "progress=false",
+]
+
+
+def _cfg(name: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose(name, overrides=overrides)
+
+
+def _train(out_dir: Path, *extra: str) -> dict:
+    return train_recipe.train(_cfg("train", [*TINY, f"out_dir={out_dir}", *extra]))
+
+
+def test_train_then_evaluate(tmp_path):
+    run = tmp_path / "run"
+    out = _train(run, "total_iterations=3")
+    assert out["iteration"] == 3 and out["frames"] == 3 * 40
+    ckpt = _common.load_checkpoint(run / "checkpoint.pt")
+    assert {"actor", "critic", "optim", "curriculum", "env", "carried", "rng", "counters", "cfg"} <= set(ckpt)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3]
+    for key in ("success_rate", "mean_end_stage", "stage_share/S0", "rho/gripper_ready_pose", "train/loss_objective",
+                "train/loss_critic", "frames", "wall_s"):
+        assert key in rows[-1], key
+    for png in ("mean_end_stage.png", "stage_shares.png", "rho.png"):
+        assert (run / png).stat().st_size > 0
+    assert any(run.glob("**/scalars/mean_end_stage.csv"))  # the csv logger's files
+
+    result = evaluate_recipe.evaluate(_cfg("evaluate", [
+        f"checkpoint={run}", "trials=6", "env.num_worlds=4", "env.max_episode_steps=15", f"out={tmp_path / 'eval.json'}",
+        "progress=false",
+    ]))
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    for key in ("backend", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
+                "command", "commit", "seed", "machine", "wall_s"):
+        assert key in saved, key
+    assert saved["backend"] == "kinematic" and saved["trials"] == 6 == result["trials"]
+    failures = round(saved["trials"] * (1 - saved["success_rate"]))
+    assert sum(saved["failure_causes"].values()) == failures
+    table = (tmp_path / "eval.md").read_text()
+    assert table.startswith("| Method | Success rate (%) | Completion time (s) |")
+
+
+def test_resume_is_bit_for_bit(tmp_path):
+    extra = ["env.max_episode_steps=5", "seed=3"]
+    _train(tmp_path / "straight", "total_iterations=4", *extra)
+    _train(tmp_path / "split", "total_iterations=2", *extra)
+    _train(tmp_path / "other", "total_iterations=4", "resume=" + str(tmp_path / "split"), *extra)  # ignored out_dir
+    a = _common.load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = _common.load_checkpoint(tmp_path / "split" / "checkpoint.pt")
+    assert a["counters"]["iteration"] == b["counters"]["iteration"] == 4
+    for part in ("actor", "critic", "curriculum"):
+        assert a[part].keys() == b[part].keys()
+        for k in a[part]:
+            assert torch.equal(a[part][k], b[part][k]), (part, k)
+    for k, v in a["env"].items():
+        assert torch.equal(v, b["env"][k]), k
+    assert (a["carried"] == b["carried"]).all()
+
+    def rows(run):  # every logged number but the wall time
+        return [{k: v for k, v in json.loads(line).items() if k != "wall_s"}
+                for line in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+
+    assert json.dumps(rows("straight")) == json.dumps(rows("split"))
+
+
+def test_warm_start_copies_weights(tmp_path):
+    _train(tmp_path / "src", "total_iterations=1")
+    _train(tmp_path / "dst", "total_iterations=0", f"warm_start={tmp_path / 'src'}", "seed=1")
+    a = _common.load_checkpoint(tmp_path / "src" / "checkpoint.pt")
+    b = _common.load_checkpoint(tmp_path / "dst" / "checkpoint.pt")
+    for k in a["actor"]:
+        assert torch.equal(a["actor"][k], b["actor"][k]), k
+
+
+def test_plots_standalone(tmp_path):
+    rows = [{"iteration": i, "mean_end_stage": 0.1 * i, "stage_share/S0": 1 - 0.1 * i, "stage_share/S1": 0.1 * i,
+             "rho/a": 0.1 * 2**i} for i in range(1, 6)]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    written = plots.plot_training(tmp_path / "metrics.jsonl", tmp_path / "out")
+    assert sorted(p.name for p in written) == ["mean_end_stage.png", "rho.png", "stage_shares.png"]
+
+
+def test_evaluate_counts_scripted_successes():
+    """The scripted policy succeeds on the kinematic backend: trials, successes and times add up."""
+    env = _common.make_env(
+        _cfg("train", ["env.backend=kinematic", "env.num_worlds=4", "env.max_episode_steps=null"]).env,
+        _cfg("train", []).curriculum, seed=5)
+    script = ScriptedPnP(4, 1)
+
+    def policy(td):
+        script.reset(td["step_count"].view(-1) == 0)
+        return script(td)
+
+    records = evaluate_recipe.run_trials(env, policy, trials=6)
+    res = evaluate_recipe.summarise(records)
+    assert res["trials"] == 6 and res["success_rate"] == 1.0
+    assert 1.0 < res["completion_time_mean_s"] < 45.0 and res["end_stage_counts"]["S6"] == 6
+    ends = [(r["end_step"], r["world"]) for r in records]
+    assert ends == sorted(ends) and max(sum(r["world"] == w for r in records) for w in range(4)) <= 2
+
+
+def _ended(success=False, fell=False, terminated=False, grabbed=False, box_goal=2.0, lifted=True):
+    """A one-world ``next`` tensordict at the step an episode ended."""
+    cond = torch.zeros(1, 1, len(CONDITIONS), dtype=torch.bool)
+    cond[..., CONDITIONS.index("object_grabbed")] = grabbed
+    terms = torch.zeros(1, 1, len(REWARD_TERMS))
+    terms[..., REWARD_TERMS.index("fall")] = float(fell)
+    obj, goal = torch.zeros(1, 1, 30), torch.zeros(1, 1, 3)
+    obj[..., 0] = box_goal
+    agents = TensorDict({"stage_conditions": cond, "reward_terms": terms, "object": obj, "goal": goal,
+                         "episode_stage": torch.full((1, 1, 1), 3)}, batch_size=(1, 1))
+    flag = lambda v: torch.full((1, 1), v)  # noqa: E731
+    nxt = TensorDict({"agents": agents, "success": flag(success), "terminated": flag(terminated or fell),
+                      "diverged": flag(False), "step_count": torch.full((1, 1), 450)}, batch_size=(1,))
+    return evaluate_recipe._end_records(nxt, torch.tensor([0]), torch.tensor([lifted]), step=450)[0]
+
+
+@pytest.mark.parametrize("kwargs, cause", [
+    ({"success": True}, None),
+    ({"fell": True}, "fall"),
+    ({}, "dropped_box"),
+    ({"box_goal": 0.2}, "timeout"),  # set down inside the goal, not released
+    ({"grabbed": True}, "timeout"),  # still held at 45 s
+    ({"lifted": False}, "timeout"),  # never lifted
+])
+def test_failure_causes(kwargs, cause):
+    assert _ended(**kwargs)["cause"] == cause
+
+
+def test_resolve_checkpoint(tmp_path):
+    old, new = tmp_path / "a" / "checkpoint.pt", tmp_path / "b" / "checkpoint.pt"
+    for i, p in enumerate((old, new)):
+        p.parent.mkdir()
+        p.write_bytes(b"x")
+        os.utime(p, (1000 + i, 1000 + i))
+    assert _common.resolve_checkpoint(True, tmp_path) == new
+    assert _common.resolve_checkpoint("latest", tmp_path) == new
+    assert _common.resolve_checkpoint(str(old.parent), tmp_path) == old
+    with pytest.raises(FileNotFoundError):
+        _common.resolve_checkpoint(str(tmp_path / "missing"), tmp_path)

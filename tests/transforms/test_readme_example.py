@@ -8,7 +8,14 @@ import torch
 
 import pnp.transforms  # noqa: F401  # pay the torchrl import at collection, not in the test
 
-SECTION = Path(__file__).resolve().parents[2] / "docs" / "curriculum_readme_section.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
+TITLE = "## Use the curriculum in your own TorchRL env"
+
+
+def section(text: str) -> str:
+    start = text.index(TITLE)
+    end = text.find("\n## ", start + len(TITLE))
+    return text[start : end if end >= 0 else None]
 
 
 def python_blocks(text: str) -> list[str]:
@@ -16,11 +23,11 @@ def python_blocks(text: str) -> list[str]:
 
 
 def test_readme_example_runs(tmp_path, monkeypatch):
-    blocks = python_blocks(SECTION.read_text())
+    blocks = python_blocks(section(README.read_text()))
     assert len(blocks) == 1
     monkeypatch.chdir(tmp_path)  # the example saves a checkpoint in the working dir
     scope: dict = {"__name__": "readme_example"}
-    exec(compile(blocks[0], str(SECTION), "exec"), scope)
+    exec(compile(blocks[0], str(README), "exec"), scope)
     rollout, schedule = scope["rollout"], scope["schedule"]
     assert rollout["next", "agents", "reward"].shape == (4, 100, 2, 1)
     assert rollout["next", "agents", "stage_one_hot"].shape == (4, 100, 2, 3)

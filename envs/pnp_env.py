@@ -24,7 +24,7 @@ from torchrl.envs import EnvBase
 
 from pnp.backend import Backend, MujocoBackend
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
-from pnp.layout import sample_layout
+from pnp.layout import START_RANGE, sample_layout
 from pnp.task import (
     ACTION_HIGH, ACTION_LOW, EPISODE_S, HL_DT, OBS_BLOCKS, BaseFrame, default_reward, geometry, observations,
     reward_terms, stage_conditions,
@@ -62,7 +62,7 @@ class PnPEnv(EnvBase):
 
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
-                 device="cpu"):
+                 start_range: tuple[float, float] = START_RANGE, device="cpu"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
@@ -70,6 +70,7 @@ class PnPEnv(EnvBase):
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
+        self.start_range = tuple(float(x) for x in start_range)
         self.backend = self._make_backend(backend, nthread)
         self.max_steps = int(round(EPISODE_S / HL_DT))
         self._make_specs()
@@ -123,7 +124,7 @@ class PnPEnv(EnvBase):
         self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
 
     def _reset_worlds(self, ids: torch.Tensor):
-        layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets)
+        layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range)
         self.backend.reset(ids, layout)
         self._goal[ids] = 0.0
         self._init_goal_dist[ids] = layout.box_xy_yaw[:, :2].norm(dim=-1)

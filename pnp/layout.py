@@ -16,20 +16,27 @@ MIN_ROBOT_BOX = 1.2  # m between a robot's base and the box centre at start (our
 MIN_ROBOT_ROBOT = 1.5  # m between the two bases at start (ours)
 
 
-def _ring(rng: torch.Generator, shape) -> torch.Tensor:
-    r = START_RANGE[0] + (START_RANGE[1] - START_RANGE[0]) * torch.rand(shape, generator=rng)
+def _ring(rng: torch.Generator, shape, start_range=START_RANGE) -> torch.Tensor:
+    r = start_range[0] + (start_range[1] - start_range[0]) * torch.rand(shape, generator=rng)
     a = 2 * math.pi * torch.rand(shape, generator=rng)
     return torch.stack([r * torch.cos(a), r * torch.sin(a)], -1)
 
 
-def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[BoxAsset, ...], tries: int = 16) -> Layout:
-    """Layouts for ``m`` worlds; rejection sampling (vectorised over ``tries`` candidates)."""
+def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[BoxAsset, ...], tries: int = 16,
+                  start_range: tuple[float, float] = START_RANGE) -> Layout:
+    """Layouts for ``m`` worlds; rejection sampling (vectorised over ``tries`` candidates).
+
+    ``start_range``: distances of robots and box from the goal (the paper's 0.6-5 m by
+    default; narrower ranges make a start-distance curriculum).
+    """
+    if not 0 <= start_range[0] <= start_range[1]:
+        raise ValueError(f"start_range must satisfy 0 <= low <= high, got {tuple(start_range)!r}")
     k = torch.randint(len(assets), (m,), generator=rng)
     edges = torch.tensor([a.size for a in assets], dtype=torch.float32)[k]
     scale = SCALE_RANGE[0] + (SCALE_RANGE[1] - SCALE_RANGE[0]) * torch.rand(m, 3, generator=rng)
     mass = torch.tensor([a.mass for a in assets], dtype=torch.float32)[k]
-    box_xy = _ring(rng, (m,))
-    bases = _ring(rng, (m, tries, num_robots))  # [m, tries, R, 2]
+    box_xy = _ring(rng, (m,), start_range)
+    bases = _ring(rng, (m, tries, num_robots), start_range)  # [m, tries, R, 2]
     ok = ((bases - box_xy[:, None, None]).norm(dim=-1) > MIN_ROBOT_BOX).all(-1)
     if num_robots == 2:
         ok &= (bases[:, :, 0] - bases[:, :, 1]).norm(dim=-1) > MIN_ROBOT_ROBOT

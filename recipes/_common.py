@@ -18,6 +18,7 @@ from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
 from pnp.envs.pnp_env import PnPEnv
+from pnp.layout import START_RANGE
 from pnp.stage_graph import pnp_default_stage_graph, pnp_default_reward_config
 from pnp.task import HL_DT
 from pnp.transforms import StageTransition, make_reward_schedule
@@ -48,7 +49,8 @@ def schedule_args(cur: DictConfig) -> tuple[str, dict]:
 def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> TransformedEnv:
     """``PnPEnv`` wrapped in StepCounter -> StageTransition -> reward schedule."""
     base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
-                  backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"))
+                  backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"),
+                  start_range=tuple(env_cfg.get("start_range") or START_RANGE))
     name, sched = schedule_args(cur_cfg)
     return TransformedEnv(base, Compose(
         # Before StageTransition: a shorter episode limit sets done, which ends the stage.

@@ -65,3 +65,11 @@ def test_layout_scales_cover_the_range():
     ratio = lay.box_size / torch.tensor(asset.size)
     assert ratio.min() < SCALE_RANGE[0] + 0.01 and ratio.max() > SCALE_RANGE[1] - 0.01
     assert abs(ratio.mean().item() - 1.0) < 0.01
+
+
+def test_start_range_narrows_the_layout_and_is_validated():
+    lay = sample_layout(torch.Generator().manual_seed(2), 500, 1, SINGLE_ROBOT_BOXES, start_range=(0.6, 1.5))
+    d = torch.cat([lay.box_xy_yaw[:, :2].norm(dim=-1), lay.base[:, 0, :2].norm(dim=-1)])
+    assert d.min() >= 0.6 - 1e-5 and d.max() <= 1.5 + 1e-5
+    with pytest.raises(ValueError, match=r"start_range.*\(2.0, 1.0\)"):
+        sample_layout(torch.Generator(), 4, 1, SINGLE_ROBOT_BOXES, start_range=(2.0, 1.0))

@@ -24,7 +24,7 @@ from hydra import compose, initialize_config_dir
 
 import pnp.envs.pnp_env as pnp_env
 from pnp.box import HANDLE_INSET
-from pnp.layout import sample_layout
+from pnp.layout import START_RANGE, sample_layout
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "recipes"))
@@ -41,9 +41,9 @@ TRAIN = [
 ]
 
 
-def reach_layout(rng, m, num_robots, assets, tries=16):
+def reach_layout(rng, m, num_robots, assets, tries=16, start_range=START_RANGE):
     """The env's layout, with each robot moved behind the box's -x handle, facing along +y of the box."""
-    lay = sample_layout(rng, m, num_robots, assets, tries)
+    lay = sample_layout(rng, m, num_robots, assets, tries, start_range=start_range)
     xy, yaw = lay.box_xy_yaw[:, :2], lay.box_xy_yaw[:, 2]
     box_x = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
     box_y = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)

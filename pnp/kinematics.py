@@ -123,25 +123,24 @@ class ArmKinematics:
         return self.fk_jacobian(q)[2]
 
     def ik(
-        self, q: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor, iters: int = 6, damping: float = 0.05,
-        posture: float = 0.0,
+        self, q: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor, iters: int = 6, damping: float = 0.05
     ) -> torch.Tensor:
         """Joint targets reaching ``pos`` with a downward gripper at ``yaw``, from ``q``.
 
-        Damped least squares with a weak pull (``posture``) toward the default arm pose:
-        it keeps repeated warm-started solves on the elbow-up branch instead of drifting
-        into wrist flips near the workspace boundary. Unreachable targets end at the
-        closest reachable pose. Orientation error is weighted 0.3 m/rad.
+        Damped least squares. Warm-started solves stay on one branch because the joint
+        ranges exclude the flipped ones (a posture pull was tried and biased the solution
+        by 2-7 cm). Unreachable targets end at the closest reachable pose. Orientation
+        error is weighted 0.3 m/rad.
         """
         r_target = gripper_down_rotation(yaw)
         w = torch.tensor([1.0, 1.0, 1.0, 0.3, 0.3, 0.3], dtype=q.dtype, device=q.device)
-        reg = (damping**2 + posture**2) * torch.eye(6, dtype=q.dtype, device=q.device)
+        reg = damping**2 * torch.eye(6, dtype=q.dtype, device=q.device)
         for _ in range(iters):
             p, r, jac = self.fk_jacobian(q)
             err = torch.cat([pos - p, rotation_error(r_target, r)], -1) * w
             jac = jac * w[:, None]
             jt = jac.transpose(-1, -2)
-            rhs = (jt @ err.unsqueeze(-1)).squeeze(-1) + posture**2 * (self.q_default - q)
+            rhs = (jt @ err.unsqueeze(-1)).squeeze(-1)
             dq = torch.linalg.solve(jt @ jac + reg, rhs)
             # Keep steps small where the linearisation is poor.
             dq = dq.clamp(-0.5, 0.5)

@@ -19,15 +19,6 @@ from pnp.terms import CONDITIONS
 SPECS = ("full_observation_spec", "full_action_spec", "full_reward_spec", "full_done_spec")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Tiny batches: intra-op threads only add wake-up latency (up to ~8 ms per op such as
-    # max(dim) on a busy 2-core machine; the scripted test ran 4 s with 2 threads, 1.3 s with 1).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 # --- contract ------------------------------------------------------------------------------
 @pytest.mark.parametrize("robots", [1, 2])

@@ -18,13 +18,6 @@ from tests.pnp import _task_reference as REF
 ATOL, RTOL = 1e-5, 1e-5  # float32; rewards reach ~100
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _close(a, b, what):
     assert a.shape == b.shape and a.dtype == b.dtype, (what, a.shape, b.shape, a.dtype, b.dtype)

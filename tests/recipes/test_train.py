@@ -62,6 +62,7 @@ def test_train_then_evaluate(tmp_path):
                 "command", "commit", "seed", "machine", "wall_s"):
         assert key in saved, key
     assert saved["backend"] == "kinematic" and saved["trials"] == 6 == result["trials"]
+    assert saved["start_range_m"] == [0.6, 5.0] and saved["max_episode_s"] == 1.5  # paper's layouts by default
     failures = round(saved["trials"] * (1 - saved["success_rate"]))
     assert sum(saved["failure_causes"].values()) == failures
     table = (tmp_path / "eval.md").read_text()

@@ -1,0 +1,205 @@
+"""Batched 4-stage end-effector tracking env (the paper's curriculum ablation): one robot
+touches four points in order with its gripper (task in ``pnp.ee_task``).
+
+Keys (group ``"agents"``, one robot), laid out as in ``PnPEnv``:
+  ("agents", "action")            [N, 1, 8]  as PnPEnv (the grasp entry only moves the fingers)
+  ("agents", "observation")       [N, 1, 47] ego | points, concatenated
+  ("agents", "ego"|"points")      the same blocks, named
+  ("agents", "reward_terms")      [N, 1, 6]  track_1..track_4, action_rate, joint_limits
+  ("agents", "stage_conditions")  [N, 1, 4]  touch_1..touch_4: EE within TOUCH_TOL of point k
+  ("agents", "reward")            [N, 1, 1]  default reward: terms at mu_j, no curriculum
+  ("agents", "action_clipped")    [N, 1]     the action was out of bounds and clipped
+  "success", "diverged"           [N, 1]     all four points touched / physics diverged
+  "done", "terminated", "truncated" [N, 1]   success / time limit or divergence
+
+The stage belongs to ``StageTransition(ee_stage_graph())``; the env keeps its own count
+of points touched (:attr:`points_touched`), advanced by the same forward-only rule, to end
+the episode on success, so the two agree by construction.
+
+Both backends are built for pick-and-place and always simulate a box: it is parked
+``BOX_PARK_X`` = 50 m away, where nothing reads it and no robot can walk to it.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from pnp.backend import Backend, MujocoBackend
+from pnp.box import SINGLE_ROBOT_BOXES
+from pnp.ee_task import (
+    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, default_reward, observations,
+    point_distances, reward_terms, sample_ee_layout, stage_conditions,
+)
+from pnp.envs.pnp_env import _torch_single_threaded
+from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT, BaseFrame
+
+_ACTION_LO, _ACTION_HI = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
+_NEUTRAL = torch.tensor([0.0, 0.0, 0.0, 0.75, 0.0, -0.30, 0.0, 0.0])  # as PnPEnv: the default EE pose
+
+
+class EETrackingEnv(EnvBase):
+    """Four-point EE tracking on ``backend`` "mujoco" or "kinematic"; episodes of
+    ``max_episode_steps`` HL steps (default 200 = 20 s)."""
+
+    batch_locked = True
+
+    def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
+                 nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)), device="cpu"):
+        if num_worlds < 1:
+            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
+        if max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps!r}")
+        super().__init__(batch_size=torch.Size([num_worlds]), device=device)
+        self.num_worlds, self.num_robots = num_worlds, 1
+        self.backend = self._make_backend(backend, nthread)
+        if self.backend.num_robots != 1:
+            raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
+        self.max_steps = int(max_episode_steps)
+        self._make_specs()
+        N = num_worlds
+        self._goal, self._init_goal_dist = torch.zeros(N, 2), torch.ones(N)  # unused PnPState fields
+        self._points = torch.zeros(N, N_POINTS, 3)
+        self._touched = torch.zeros(N, dtype=torch.long)
+        self._last_action = _NEUTRAL.expand(N, 1, 8).clone()
+        self._steps = torch.zeros(N, dtype=torch.long)
+        self.clipped_count = 0  # actions clipped since construction
+        self.diverged_count = 0  # worlds reset after a physics divergence
+        self._set_seed(seed)
+        self._reset_worlds(torch.arange(N))
+
+    def _make_backend(self, backend, nthread) -> Backend:
+        if isinstance(backend, Backend):
+            return backend
+        if backend == "mujoco":
+            return MujocoBackend(self.num_worlds, 1, SINGLE_ROBOT_BOXES[0], nthread=nthread)
+        if backend == "kinematic":
+            from pnp.kinematic import KinematicBackend  # optional second backend
+
+            return KinematicBackend(self.num_worlds, 1)
+        raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
+
+    @property
+    def points_touched(self) -> torch.Tensor:
+        """Points touched so far in each world's episode, long [N] (= the stage index)."""
+        return self._touched.clone()
+
+    def _make_specs(self):
+        agents = lambda d: Composite(d, shape=(1,))  # noqa: E731
+        self.full_action_spec_unbatched = Composite({"agents": agents({
+            "action": Bounded(_ACTION_LO.expand(1, 8), _ACTION_HI.expand(1, 8), shape=(1, 8)),
+        })})
+        obs = {k: Unbounded(shape=(1, n)) for k, n in EE_OBS_BLOCKS.items()}
+        obs["observation"] = Unbounded(shape=(1, sum(EE_OBS_BLOCKS.values())))
+        obs["reward_terms"] = Unbounded(shape=(1, len(EE_REWARD_TERMS)))
+        obs["stage_conditions"] = Binary(n=len(EE_CONDITIONS), shape=(1, len(EE_CONDITIONS)), dtype=torch.bool)
+        obs["action_clipped"] = Categorical(2, shape=(1,), dtype=torch.bool)
+        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool)  # noqa: E731
+        self.full_observation_spec_unbatched = Composite({"agents": agents(obs), "success": flag(), "diverged": flag()})
+        self.full_reward_spec_unbatched = Composite({"agents": agents({"reward": Unbounded(shape=(1, 1))})})
+        self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
+
+    # --- EnvBase hooks -------------------------------------------------------------------
+    def _set_seed(self, seed: int | None):
+        self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
+
+    def _reset_worlds(self, ids: torch.Tensor):
+        layout, points = sample_ee_layout(self._rng, len(ids))
+        self.backend.reset(ids, layout)
+        self._points[ids] = points
+        self._touched[ids] = 0
+        self._last_action[ids] = _NEUTRAL
+        self._steps[ids] = 0
+
+    @_torch_single_threaded
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_worlds)
+        ids = torch.arange(self.num_worlds) if mask is None else mask.nonzero().squeeze(-1)
+        if len(ids):
+            self._reset_worlds(ids)
+        out = self._observe(self._last_action, self._last_action)
+        zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
+        out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
+                    "success": zeros.clone(), "diverged": zeros.clone()})
+        out.del_(("agents", "reward"))
+        return out
+
+    @_torch_single_threaded
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action, clipped = self._check_action(tensordict.get(("agents", "action"), None))
+        diverged = self.backend.step(action)
+        self._steps += 1
+        if diverged.any():
+            # Reset the diverged worlds alone; the others carry on. They end as truncated.
+            ids = diverged.nonzero().squeeze(-1)
+            self.diverged_count += len(ids)
+            self._reset_worlds(ids)
+            action = torch.where(diverged[:, None, None], self._last_action, action)
+        out = self._observe(action, self._last_action)
+        self._last_action = action
+        # The forward-only graph's rule: only the next point's touch counts.
+        cond = out.get(("agents", "stage_conditions"))[:, 0]
+        nxt = self._touched.clamp(max=N_POINTS - 1).unsqueeze(-1)
+        self._touched += (cond.gather(-1, nxt).squeeze(-1) & (self._touched < N_POINTS) & ~diverged).long()
+        success = self._touched >= N_POINTS
+        truncated = ((self._steps >= self.max_steps) | diverged) & ~success
+        out.set(("agents", "action_clipped"), clipped)
+        out.update({"terminated": success.unsqueeze(-1), "truncated": truncated.unsqueeze(-1),
+                    "done": (success | truncated).unsqueeze(-1), "success": success.unsqueeze(-1),
+                    "diverged": diverged.unsqueeze(-1)})
+        return out
+
+    def _check_action(self, action: torch.Tensor | None):
+        expected = (self.num_worlds, 1, 8)
+        if action is None:
+            raise KeyError("missing ('agents', 'action') in the input tensordict")
+        if tuple(action.shape) != expected:
+            raise ValueError(f"('agents', 'action') has shape {tuple(action.shape)}, expected {expected}")
+        if not torch.isfinite(action.sum()):  # fast path as in PnPEnv
+            bad = ~torch.isfinite(action).all(-1).all(-1)
+            if bad.any():
+                raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {bad.nonzero().squeeze(-1).tolist()}")
+        action = action.float()
+        clipped_action = torch.clamp(action, _ACTION_LO, _ACTION_HI)
+        clipped = (clipped_action != action).any(-1)
+        self.clipped_count += int(clipped.sum())
+        return clipped_action, clipped
+
+    def _observe(self, action, last_action) -> TensorDict:
+        s = self.backend.state(self._goal, self._init_goal_dist, action[..., 7])
+        frame = BaseFrame(s)
+        dist = point_distances(s, self._points)
+        terms = reward_terms(s, dist, action, last_action)
+        blocks = observations(s, self._points, dist, action, frame)
+        agents = dict(blocks, observation=torch.cat([blocks[k] for k in EE_OBS_BLOCKS], -1), reward_terms=terms,
+                      stage_conditions=stage_conditions(dist), reward=default_reward(terms),
+                      action_clipped=torch.zeros(self.num_worlds, 1, dtype=torch.bool))
+        return TensorDict({"agents": TensorDict(agents, batch_size=(self.num_worlds, 1))}, batch_size=(self.num_worlds,))
+
+    # --- extras ------------------------------------------------------------------------------
+    _STATE = ("_points", "_touched", "_last_action", "_steps")
+
+    def get_state(self) -> dict:
+        """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
+        st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
+        st.update({k: getattr(self, k).clone() for k in self._STATE})
+        st["rng"] = self._rng.get_state()
+        st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
+        return st
+
+    def set_state(self, state: dict) -> None:
+        missing = [k for k in (*self._STATE, "rng", "counters") if k not in state]
+        if missing:
+            raise KeyError(f"env state is missing {missing}; present: {sorted(state)}")
+        self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
+        for k in self._STATE:
+            setattr(self, k, state[k].clone())
+        self._rng.set_state(state["rng"])
+        self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
+
+    def close(self, *, raise_if_closed: bool = True):
+        self.backend.close()
+        super().close(raise_if_closed=raise_if_closed)

@@ -34,7 +34,8 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   tilts and the EE ends where the FK puts it, as the executor's DLS would compromise.
   ``arm_qd`` is the finite difference of ``arm_q`` over the step.
 * **Fingers**: the opening of both fingers moves toward 0 (command > 0.5) or
-  ``FINGER_STROKE`` at ``finger_speed`` (default 0.5 m/s: a full stroke in 0.14 s).
+  ``FINGER_STROKE`` at ``finger_speed`` (default 1.0 m/s: a full stroke in 0.07 s, within
+  one HL step, as the MuJoCo fingers close).
   When closing fingers reach the bar radius while the EE is within ``GRASP_DIST`` of a
   handle bar ("its" handle, the one whose centre is nearest, as ``pnp.task.geometry``
   picks it) and the closing axis is within ``GRASP_ALIGN`` of perpendicular to the bar,
@@ -91,7 +92,10 @@ from pnp.task import GRASP_DIST, HL_DT, PnPState
 
 GRAVITY = 9.81  # m/s^2
 EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
-FINGER_SPEED = 0.5  # m/s per finger
+# m/s per finger. MuJoCo's position-actuated fingers close their full 7 cm stroke within one
+# HL step (measured: 0.07 -> 7e-5 m); at 0.5 m/s a grasp needed two closed commands in a row,
+# which a stochastic policy almost never samples.
+FINGER_SPEED = 1.0
 GRASP_ALIGN = 0.7  # grasp needs 1 - |cos(closing axis, bar axis)| above this (~17 deg)
 L1, L2 = UPPER_ARM, FOREARM  # shoulder (j2) -> elbow (j3) -> wrist pitch (j5)
 LW = WRIST + GRIPPER_LEN  # wrist pitch (j5) -> EE site, along the gripper's approach axis

@@ -177,7 +177,8 @@ class EETrackingEnv(EnvBase):
         agents = dict(blocks, observation=torch.cat([blocks[k] for k in EE_OBS_BLOCKS], -1), reward_terms=terms,
                       stage_conditions=stage_conditions(dist), reward=default_reward(terms),
                       action_clipped=torch.zeros(self.num_worlds, 1, dtype=torch.bool))
-        return TensorDict({"agents": TensorDict(agents, batch_size=(self.num_worlds, 1))}, batch_size=(self.num_worlds,))
+        N = self.num_worlds
+        return TensorDict({"agents": TensorDict(agents, batch_size=(N, 1))}, batch_size=(N,))
 
     # --- extras ------------------------------------------------------------------------------
     _STATE = ("_points", "_touched", "_last_action", "_steps")

@@ -232,12 +232,22 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "object_released_in_goal": cond[..., 5].float(),
         "stage_progress": torch.zeros_like(p),
         "arm_default_pose": torch.exp(-2 * torch.sqrt((dq * dq).sum(-1))),
-        "action_rate": (((action - last_action) * _INV_SCALE) ** 2).sum(-1),
+        "action_rate": action_rate(action, last_action),
         "collision": _collisions(s, frame or BaseFrame(s)),
-        "joint_limits": torch.clamp((s.arm_q - _MID).abs() - _HALF95, min=0.0).sum(-1),
+        "joint_limits": joint_limit_excess(s.arm_q),
         "fall": g.fell.float(),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
+
+
+def action_rate(action: torch.Tensor, last_action: torch.Tensor) -> torch.Tensor:
+    """Squared action change per robot [N, R], each dim scaled by its half range."""
+    return (((action - last_action) * _INV_SCALE) ** 2).sum(-1)
+
+
+def joint_limit_excess(arm_q: torch.Tensor) -> torch.Tensor:
+    """Summed excess of the arm joints beyond 95 % of their ranges [N, R]."""
+    return torch.clamp((arm_q - _MID).abs() - _HALF95, min=0.0).sum(-1)
 
 
 def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
@@ -252,22 +262,36 @@ def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
     return hit.float()
 
 
+def _opening(s: PnPState) -> torch.Tensor:
+    return (s.finger_q[..., 0] + s.finger_q[..., 1]) * (0.5 / FINGER_STROKE)
+
+
+def ego_block(s: PnPState, frame: BaseFrame, last_action: torch.Tensor, ee=None, opening=None,
+              touch=None) -> torch.Tensor:
+    """The robot's own block [N, R, 31] (fields in ``OBS_FIELDS["ego"]``); any task with this
+    robot reuses it. ``ee``/``opening``/``touch`` may be passed when the caller has them."""
+    N, R = s.ee_pos.shape[:2]
+    c, sn = frame.c, frame.s
+    ee = ee if ee is not None else frame.point_xyz(*s.ee_pos.unbind(-1))
+    opening = opening if opening is not None else _opening(s)
+    touch = touch if touch is not None else s.touch.float().unbind(-1)
+    # EE yaw in the base frame from column 1 of R_base^T @ ee_rot.
+    e01, e11 = s.ee_rot[..., 0, 1], s.ee_rot[..., 1, 1]
+    ee_yaw = torch.atan2(-(c * e01 + sn * e11), c * e11 - sn * e01)
+    small = _stack([*frame.rotate_xy(s.base_vel[..., 0], s.base_vel[..., 1]), s.base_vel[..., 2], *ee,
+                    torch.sin(ee_yaw), torch.cos(ee_yaw), opening, *touch], N, R)
+    return torch.cat([small[..., :3], s.arm_q, s.arm_qd * 0.1, small[..., 3:], last_action], -1)
+
+
 def observations(s: PnPState, g: Geometry, last_action: torch.Tensor,
                  frame: BaseFrame | None = None) -> dict[str, torch.Tensor]:
     """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`)."""
     # Built from [N, R] / [N, 1] component columns, stacked once per block.
     frame = frame or BaseFrame(s)
     N, R = s.ee_pos.shape[:2]
-    c, sn = frame.c, frame.s
     ee = frame.point_xyz(*s.ee_pos.unbind(-1))
-    # EE yaw in the base frame from column 1 of R_base^T @ ee_rot.
-    e01, e11 = s.ee_rot[..., 0, 1], s.ee_rot[..., 1, 1]
-    ee_yaw = torch.atan2(-(c * e01 + sn * e11), c * e11 - sn * e01)
-    opening = (s.finger_q[..., 0] + s.finger_q[..., 1]) * (0.5 / FINGER_STROKE)
-    touch = s.touch.float().unbind(-1)
-    small = _stack([*frame.rotate_xy(s.base_vel[..., 0], s.base_vel[..., 1]), s.base_vel[..., 2], *ee,
-                    torch.sin(ee_yaw), torch.cos(ee_yaw), opening, *touch], N, R)
-    ego = torch.cat([small[..., :3], s.arm_q, s.arm_qd * 0.1, small[..., 3:], last_action], -1)
+    opening, touch = _opening(s), s.touch.float().unbind(-1)
+    ego = ego_block(s, frame, last_action, ee, opening, touch)
     gx, gy = frame.rotate_xy(s.goal[:, None, 0] - frame.ox, s.goal[:, None, 1] - frame.oy)
     goal = _stack([gx, gy, torch.hypot(gx, gy)], N, R)
     h = handles(s)

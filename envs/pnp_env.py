@@ -11,6 +11,11 @@ Keys (multi-agent group ``"agents"``, A robots):
   ("agents", "action_clipped")    [N, A]     the action was out of bounds and clipped
   "success", "diverged"           [N, 1]     episode succeeded / physics diverged and reset
   "done", "terminated", "truncated" [N, 1]   success or fall / 45 s or divergence
+
+The grasp entry is a probability p; the gripper gets a binary command (paper: "a binary
+command for the gripper"): ``grasp_sampling="threshold"`` closes when p > 0.5 (evaluation,
+scripted policies), ``"bernoulli"`` closes with probability p (training: a policy sure to
+keep the gripper open still closes now and then, which is how grasps are first found).
 """
 from __future__ import annotations
 
@@ -62,11 +67,14 @@ class PnPEnv(EnvBase):
 
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
-                 start_range: tuple[float, float] = START_RANGE, device="cpu"):
+                 start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold", device="cpu"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
+        if grasp_sampling not in ("threshold", "bernoulli"):
+            raise ValueError(f"grasp_sampling must be 'threshold' or 'bernoulli', got {grasp_sampling!r}")
+        self.grasp_sampling = grasp_sampling
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
@@ -150,7 +158,14 @@ class PnPEnv(EnvBase):
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action, clipped = self._check_action(tensordict.get(("agents", "action")))
-        diverged = self.backend.step(action)
+        p = action[..., 7]
+        if self.grasp_sampling == "bernoulli":
+            closed = torch.rand(p.shape, generator=self._rng) < p
+        else:
+            closed = p > 0.5
+        command = action.clone()
+        command[..., 7] = closed.float()
+        diverged = self.backend.step(command)
         self._steps += 1
         if diverged.any():
             # Reset the diverged worlds alone; the others carry on. They end as truncated.
@@ -158,7 +173,9 @@ class PnPEnv(EnvBase):
             self.diverged_count += len(ids)
             self._reset_worlds(ids)
             action = torch.where(diverged[:, None, None], self._last_action, action)
-        out = self._observe(action, self._last_action)
+            command = torch.where(diverged[:, None, None], self._last_action, command)
+            command[..., 7] = (command[..., 7] > 0.5).float()
+        out = self._observe(action, self._last_action, command[..., 7])
         self._last_action = action
         cond = out.get(("agents", "stage_conditions"))
         self._was_lifted |= (cond[..., 2]).any(-1)
@@ -190,8 +207,10 @@ class PnPEnv(EnvBase):
         self.clipped_count += int(clipped.sum())
         return clipped_action, clipped
 
-    def _observe(self, action, last_action) -> TensorDict:
-        s = self.backend.state(self._goal, self._init_goal_dist, action[..., 7])
+    def _observe(self, action, last_action, closed=None) -> TensorDict:
+        if closed is None:  # at reset: the neutral action's command
+            closed = (action[..., 7] > 0.5).float()
+        s = self.backend.state(self._goal, self._init_goal_dist, closed)
         frame = BaseFrame(s)  # each robot's base frame, shared by the terms and the observations
         g = geometry(s)
         cond = stage_conditions(s, g)

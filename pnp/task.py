@@ -69,7 +69,7 @@ class PnPState:
     box_size: torch.Tensor  # [N, 3] full edges
     goal: torch.Tensor  # [N, 2]
     init_goal_dist: torch.Tensor  # [N]
-    grasp_cmd: torch.Tensor  # [N, R] commanded grasp probability
+    grasp_cmd: torch.Tensor  # [N, R] gripper command executed (closes above 0.5)
 
 
 # Constant tensors, built once (CPU, float32).
@@ -214,7 +214,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
     """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.terms.REWARD_TERMS``."""
     R = s.ee_pos.shape[1]
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731
-    p = s.grasp_cmd
+    p = action[..., 7]  # the policy's grasp probability (Table II's grab action terms)
     height = torch.clamp(g.box_lift, 0.0, MAX_OBJ_HEIGHT)
     tx, ty = s.goal[:, 0] - s.box_pos[:, 0], s.goal[:, 1] - s.box_pos[:, 1]
     v_goal = (s.box_vel[:, 0] * tx + s.box_vel[:, 1] * ty) / torch.hypot(tx, ty).clamp(min=1e-6)

@@ -17,6 +17,8 @@ from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, 
 from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
+from pnp.ee_task import ee_reward_config, ee_stage_graph
+from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.pnp_env import PnPEnv
 from pnp.layout import START_RANGE
 from pnp.stage_graph import pnp_default_stage_graph, pnp_default_reward_config
@@ -30,13 +32,25 @@ LOG_PROB = ("agents", "action_log_prob")
 VALUE = ("agents", "state_value")
 LOC, SCALE = ("agents", "loc"), ("agents", "scale")
 EPISODE_STAGE = ("agents", "episode_stage")
-N_STAGES = pnp_default_stage_graph().n_stages
+N_STAGES = pnp_default_stage_graph().n_stages  # of the pick-and-place task
+# env.task -> (stage graph, reward-schedule kwargs): what the curriculum needs of a task.
+TASKS = {
+    "pnp": (pnp_default_stage_graph, pnp_default_reward_config),
+    "ee_tracking": (ee_stage_graph, ee_reward_config),
+}
 
 
 # --- env -----------------------------------------------------------------------------------
-def schedule_args(cur: DictConfig) -> tuple[str, dict]:
+def _task(env_cfg: DictConfig) -> str:
+    task = str(env_cfg.get("task", "pnp"))
+    if task not in TASKS:
+        raise ValueError(f"env.task must be one of {sorted(TASKS)}, got {task!r}")
+    return task
+
+
+def schedule_args(cur: DictConfig, task: str = "pnp") -> tuple[str, dict]:
     """Name and kwargs of ``make_reward_schedule`` for a ``curriculum`` config."""
-    cfg = pnp_default_reward_config()
+    cfg = TASKS[task][1]()
     if not cur.stage_rewards:
         # Control run: only R_fixed; every stage-wise term becomes a fixed term of weight 0.
         cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})
@@ -47,15 +61,24 @@ def schedule_args(cur: DictConfig) -> tuple[str, dict]:
 
 
 def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> TransformedEnv:
-    """``PnPEnv`` wrapped in StepCounter -> StageTransition -> reward schedule."""
-    base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
-                  backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"),
-                  start_range=tuple(env_cfg.get("start_range") or START_RANGE))
-    name, sched = schedule_args(cur_cfg)
+    """The ``env.task`` env (``PnPEnv`` or ``EETrackingEnv``) wrapped in StepCounter ->
+    StageTransition -> reward schedule."""
+    task = _task(env_cfg)
+    if task == "pnp":
+        base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
+                      backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"),
+                      start_range=tuple(env_cfg.get("start_range") or START_RANGE),
+                      grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")))
+    else:
+        if int(env_cfg.num_robots) != 1:
+            raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
+        base = EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=str(env_cfg.backend), seed=int(seed),
+                             nthread=env_cfg.get("nthread"))
+    name, sched = schedule_args(cur_cfg, task)
     return TransformedEnv(base, Compose(
         # Before StageTransition: a shorter episode limit sets done, which ends the stage.
         StepCounter(max_steps=env_cfg.get("max_episode_steps")),
-        StageTransition(pnp_default_stage_graph(), one_hot_key=STAGE_ONE_HOT),
+        StageTransition(TASKS[task][0](), one_hot_key=STAGE_ONE_HOT),
         make_reward_schedule(name, **sched),
     ))
 
@@ -165,7 +188,7 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
     base = env.base_env
     n_agents = base.num_robots
     n_obs = env.observation_spec[OBS].shape[-1]
-    n_in = n_obs + N_STAGES
+    n_in = n_obs + env.observation_spec[STAGE_ONE_HOT].shape[-1]
     spec = env.full_action_spec_unbatched[ACTION]
     obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None  # one instance, shared by actor and critic
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
@@ -224,7 +247,9 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     out = {"episodes": float(n), "reward": float(nxt["agents", "reward"].mean())}
     out["success_rate"] = float(nxt["success"].squeeze(-1)[done].float().mean()) if n else math.nan
     out["mean_end_stage"] = float(ended.float().mean()) if ended.numel() else math.nan
-    hist = torch.bincount(ended, minlength=N_STAGES).float()
+    won = nxt["success"].squeeze(-1) & done
+    out["completion_time_s"] = seconds(nxt["step_count"].squeeze(-1)[won].float().mean()) if won.any() else math.nan
+    hist = torch.bincount(ended, minlength=batch[STAGE_ONE_HOT].shape[-1]).float()
     for i, h in enumerate(hist):
         out[f"stage_share/S{i}"] = float(h / hist.sum()) if ended.numel() else math.nan
     return out

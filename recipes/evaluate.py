@@ -133,12 +133,16 @@ def evaluate(cfg: DictConfig) -> dict:
     ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
     ckpt = load_checkpoint(ckpt_path)
     tcfg = OmegaConf.create(ckpt["cfg"])
+    if tcfg.env.get("task", "pnp") != "pnp":
+        raise ValueError(f"{ckpt_path} was trained on env.task={tcfg.env.task!r}; this recipe evaluates pnp "
+                         "(the EE-tracking ablation evaluates in recipes/ablation_ee.py)")
     env_cfg = tcfg.env.copy()
     env_cfg.backend = cfg.env.backend or tcfg.env.backend
     env_cfg.num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
     env_cfg.nthread, env_cfg.max_episode_steps = cfg.env.nthread, cfg.env.max_episode_steps
     # The paper's layouts unless asked otherwise: a policy trained on near starts is judged on all.
     env_cfg.start_range = list(cfg.env.get("start_range") or START_RANGE)
+    env_cfg.grasp_sampling = "threshold"  # the deterministic policy's gripper command
     t0 = time.monotonic()
     seed_everything(int(cfg.seed))
     env = make_env(env_cfg, tcfg.curriculum, int(cfg.seed))

@@ -185,3 +185,20 @@ def test_get_set_state_continues_exactly():
         torch.testing.assert_close(r, g, rtol=0, atol=0)
     with pytest.raises(KeyError, match="_goal"):
         other.set_state({k: v for k, v in saved.items() if k != "_goal"})
+
+
+@pytest.mark.parametrize("sampling,expected", [("threshold", 0.0), ("bernoulli", 0.3)])
+def test_grasp_sampling(sampling, expected):
+    """p = 0.3: thresholded, the gripper never closes; sampled, it closes 30 % of the steps."""
+    env = PnPEnv(num_worlds=256, num_robots=1, backend="kinematic", grasp_sampling=sampling)
+    td = env.reset()
+    action = env._last_action.clone()
+    action[..., 7] = 0.3
+    closed = []
+    for _ in range(4):
+        td = env.step(td.set(("agents", "action"), action.clone()))
+        closed.append(env.backend.finger[..., 0] < 0.035)  # fingers past mid-stroke
+        td = env.step_mdp(td)
+    assert torch.stack(closed).float().mean().item() == pytest.approx(expected, abs=0.04)
+    with pytest.raises(ValueError, match="grasp_sampling must be 'threshold' or 'bernoulli', got 'sometimes'"):
+        PnPEnv(num_worlds=1, backend="kinematic", grasp_sampling="sometimes")

@@ -38,15 +38,15 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
     it = _series(rows, "iteration")
     written = []
 
+    shares = sorted({k for r in rows for k in r if k.startswith("stage_share/")}, key=lambda k: int(k.split("S")[-1]))
     fig, ax = plt.subplots(figsize=(6, 3.5))
     stage = _series(rows, "mean_end_stage")
     ok = np.isfinite(stage)  # iterations where no episode ended have no value
     ax.plot(it[ok], stage[ok])
-    ax.set(xlabel="iteration", ylabel="mean end-of-episode stage", ylim=(0, 6.2))
+    ax.set(xlabel="iteration", ylabel="mean end-of-episode stage", ylim=(0, max(len(shares), 2) - 0.8))
     ax.grid(alpha=0.3)
     written.append(_save(fig, out_dir / "mean_end_stage.png"))
 
-    shares = sorted({k for r in rows for k in r if k.startswith("stage_share/")}, key=lambda k: int(k.split("S")[-1]))
     if shares:
         fig, ax = plt.subplots(figsize=(6, 3.5))
         ys = np.stack([_series(rows, k) for k in shares])

@@ -165,6 +165,8 @@ def train(cfg: DictConfig) -> dict:
             init = load_checkpoint(resolve_checkpoint(cfg.warm_start, cfg.runs_root))
             actor.load_state_dict(init["actor"])
             critic.load_state_dict(init["critic"])
+            if cfg.get("warm_start_curriculum"):  # rho_j as they were: no reward-scale shock
+                env.transform.load_state_dict(init["curriculum"])
         carried = env.reset()
         if obs_norm is not None and not cfg.warm_start:
             obs_norm.update(carried[OBS])  # first statistics from the initial layouts

@@ -167,3 +167,11 @@ def test_resolve_checkpoint(tmp_path):
     assert _common.resolve_checkpoint(str(old.parent), tmp_path) == old
     with pytest.raises(FileNotFoundError):
         _common.resolve_checkpoint(str(tmp_path / "missing"), tmp_path)
+
+
+def test_warm_start_curriculum_copies_rho(tmp_path):
+    _train(tmp_path / "src", "total_iterations=2")
+    _train(tmp_path / "dst", "total_iterations=0", f"warm_start={tmp_path / 'src'}", "warm_start_curriculum=true")
+    a = _common.load_checkpoint(tmp_path / "src" / "checkpoint.pt")["curriculum"]
+    b = _common.load_checkpoint(tmp_path / "dst" / "checkpoint.pt")["curriculum"]
+    assert torch.equal(a["transforms.2.rho"], b["transforms.2.rho"]) and not (a["transforms.2.rho"] == 0.1).all()

@@ -1,0 +1,182 @@
+"""The paper's curriculum ablation: 4-stage EE tracking, dynamic vs Liu et al. (max) and (min).
+
+    python recipes/ablation_ee.py                          # 3 schedules x 3 seeds, 150 iterations each
+    python recipes/ablation_ee.py seeds=[0] iterations=50  # a quicker look
+
+Every run trains ``recipes/train.py`` on ``env.task=ee_tracking`` with the same budget
+(``iterations`` x ``collect.frames_per_batch`` frames) into ``runs_dir/<schedule>_s<seed>``;
+an existing run resumes (or is skipped when complete), so the ablation survives restarts.
+Then each policy runs ``eval_trials`` deterministic episodes. Writes ``out`` (JSON: per
+method and seed the first iteration at which most episodes end in S4, the final success
+rate, the mean completion time and the budget used) and, beside it, PNGs of success rate,
+completion time and mean end-of-episode stage vs iteration (mean over seeds, min-max band).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import InteractionType, set_interaction_type
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import train as train_recipe  # noqa: E402
+from _common import load_checkpoint, make_env, make_models, seconds  # noqa: E402
+from _provenance import provenance  # noqa: E402
+from plots import load_metrics  # noqa: E402
+
+CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
+FINAL = "stage_share/S4"
+CURVES = {"success_rate": "success rate", "completion_time_s": "completion time (s)",
+          "mean_end_stage": "mean end-of-episode stage"}
+
+
+def train_config(cfg: DictConfig, schedule: str, seed: int) -> DictConfig:
+    run = Path(cfg.runs_dir) / f"{schedule}_s{seed}"
+    overrides = [*cfg.train, f"curriculum.schedule={schedule}", f"seed={seed}", f"out_dir={run}",
+                 f"total_iterations={int(cfg.iterations)}"]
+    if (run / "checkpoint.pt").is_file():
+        overrides.append(f"resume={run}")
+    if GlobalHydra.instance().is_initialized():  # under @hydra.main: same config folder
+        return compose("train", overrides=overrides)
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def evaluate_policy(run: Path, trials: int, seed: int) -> dict:
+    """``trials`` deterministic episodes: success rate and completion time (s) of the successes."""
+    ckpt = load_checkpoint(run / "checkpoint.pt")
+    tcfg = OmegaConf.create(ckpt["cfg"])
+    tcfg.env.num_worlds = min(int(tcfg.env.num_worlds), trials)
+    env = make_env(tcfg.env, tcfg.curriculum, seed)
+    actor, *_ = make_models(tcfg.model, env, tcfg.loss.value_norm, float(tcfg.loss.popart_beta))
+    actor.load_state_dict(ckpt["actor"])
+    n = env.base_env.num_worlds
+    left = torch.full((n,), math.ceil(trials / n))
+    ends = []  # (step, world, success, episode steps), finishing order decides which count
+    td, step = env.reset(), 0
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        while bool((left > 0).any()):
+            out, td = env.step_and_maybe_reset(actor(td))
+            nxt, step = out["next"], step + 1
+            done = nxt["done"].view(n) & (left > 0)
+            for w in done.nonzero().view(-1).tolist():
+                ends.append((step, w, bool(nxt["success"][w, 0]), int(nxt["step_count"][w, 0])))
+            left -= done.long()
+    env.close()
+    ends = sorted(ends)[:trials]
+    times = [seconds(k) for _, _, ok, k in ends if ok]
+    return {"trials": len(ends), "success_rate": len(times) / len(ends),
+            "completion_time_mean_s": float(np.mean(times)) if times else None,
+            "completion_time_std_s": float(np.std(times)) if times else None}
+
+
+def first_majority_in_final(rows: list[dict]) -> int | None:
+    """First iteration at which more than half of the episodes that ended, ended in S4."""
+    return next((r["iteration"] for r in rows if r.get(FINAL, 0.0) > 0.5), None)
+
+
+def windowed(rows: list[dict], key: str, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Episode-weighted means of ``key`` over windows of iterations (NaN where none ended)."""
+    last = max(r["iteration"] for r in rows)
+    edges = np.arange(0, last + window, window)
+    sums, counts = np.zeros(len(edges)), np.zeros(len(edges))
+    for r in rows:
+        v, n = r.get(key, math.nan), r.get("episodes", 0.0)
+        if key == "completion_time_s":
+            n = n * r.get("success_rate", 0.0)  # averaged over successful episodes
+        if n > 0 and math.isfinite(v):
+            i = (r["iteration"] - 1) // window
+            sums[i] += v * n
+            counts[i] += n
+    with np.errstate(invalid="ignore"):
+        return edges + window, np.where(counts > 0, sums / np.maximum(counts, 1e-12), np.nan)
+
+
+def plot_curves(runs: dict[str, dict[int, list[dict]]], window: int, out_dir: Path) -> list[Path]:
+    written = []
+    for key, label in CURVES.items():
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        for method, by_seed in runs.items():
+            curves = [windowed(rows, key, window) for rows in by_seed.values() if rows]
+            if not curves:
+                continue
+            n = min(len(c[0]) for c in curves)
+            x, ys = curves[0][0][:n], np.stack([c[1][:n] for c in curves])
+            with warnings.catch_warnings():  # all-NaN windows (no episode ended) stay NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean, lo, hi = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
+            (line,) = ax.plot(x, mean, label=f"{method} ({len(curves)} seeds)")
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+        ax.set(xlabel="iteration", ylabel=label)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        path = out_dir / f"ablation_ee_{key}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def run_ablation(cfg: DictConfig) -> dict:
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    results, curves, backend = {}, {}, None
+    for schedule in cfg.schedules:
+        results[schedule], curves[schedule] = {}, {}
+        for seed in cfg.seeds:
+            tcfg = train_config(cfg, schedule, int(seed))
+            train_recipe.train(tcfg)
+            backend = str(tcfg.env.backend)
+            run = Path(tcfg.out_dir)
+            rows = load_metrics(run / "metrics.jsonl")
+            curves[schedule][int(seed)] = rows
+            last = rows[-1] if rows else {}
+            results[schedule][f"seed_{seed}"] = {
+                "iterations_to_S4_majority": first_majority_in_final(rows),
+                **evaluate_policy(run, int(cfg.eval_trials), int(cfg.eval_seed)),
+                "budget": {"iterations": last.get("iteration"), "frames": last.get("frames"),
+                           "train_wall_s": last.get("wall_s")},
+                "run": str(run),
+            }
+    pngs = plot_curves(curves, int(cfg.window), out.parent)
+    summary = {m: _summary(r) for m, r in results.items()}
+    doc = {"task": "ee_tracking (4 points)", "backend": backend, "results": results, "summary": summary,
+           "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **provenance()}
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    return doc
+
+
+def _summary(by_seed: dict) -> dict:
+    def stat(key):
+        vals = [r[key] for r in by_seed.values() if r[key] is not None]
+        return {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "n": len(vals)} if vals else None
+
+    return {k: stat(k) for k in ("iterations_to_S4_majority", "success_rate", "completion_time_mean_s")}
+
+
+@hydra.main(config_path="config", config_name="ablation_ee", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    doc = run_ablation(cfg)
+    for method, s in doc["summary"].items():
+        print(method, json.dumps(s))
+    print(f"wrote {cfg.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -29,7 +29,7 @@ from torchrl.envs import EnvBase
 from pnp.backend import Backend, MujocoBackend
 from pnp.box import SINGLE_ROBOT_BOXES
 from pnp.ee_task import (
-    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, default_reward, observations,
+    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_SATURATES, default_reward, observations,
     point_distances, reward_terms, sample_ee_layout, stage_conditions,
 )
 from pnp.envs.pnp_env import _torch_single_threaded
@@ -46,7 +46,8 @@ class EETrackingEnv(EnvBase):
     batch_locked = True
 
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
-                 nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)), device="cpu"):
+                 nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
+                 track_saturates: bool = TRACK_SATURATES, device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
         if max_episode_steps < 1:
@@ -57,6 +58,7 @@ class EETrackingEnv(EnvBase):
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
         self.max_steps = int(max_episode_steps)
+        self.track_saturates = bool(track_saturates)  # see pnp.ee_task.TRACK_SATURATES
         self._make_specs()
         N = num_worlds
         self._goal, self._init_goal_dist = torch.zeros(N, 2), torch.ones(N)  # unused PnPState fields
@@ -138,12 +140,8 @@ class EETrackingEnv(EnvBase):
             self.diverged_count += len(ids)
             self._reset_worlds(ids)
             action = torch.where(diverged[:, None, None], self._last_action, action)
-        out = self._observe(action, self._last_action)
+        out = self._observe(action, self._last_action, advance=~diverged)
         self._last_action = action
-        # The forward-only graph's rule: only the next point's touch counts.
-        cond = out.get(("agents", "stage_conditions"))[:, 0]
-        nxt = self._touched.clamp(max=N_POINTS - 1).unsqueeze(-1)
-        self._touched += (cond.gather(-1, nxt).squeeze(-1) & (self._touched < N_POINTS) & ~diverged).long()
         success = self._touched >= N_POINTS
         truncated = ((self._steps >= self.max_steps) | diverged) & ~success
         out.set(("agents", "action_clipped"), clipped)
@@ -168,14 +166,19 @@ class EETrackingEnv(EnvBase):
         self.clipped_count += int(clipped.sum())
         return clipped_action, clipped
 
-    def _observe(self, action, last_action) -> TensorDict:
+    def _observe(self, action, last_action, advance: torch.Tensor | None = None) -> TensorDict:
+        """Outputs for the current state; ``advance`` [N]: worlds whose touch count may move."""
         s = self.backend.state(self._goal, self._init_goal_dist, action[..., 7])
         frame = BaseFrame(s)
         dist = point_distances(s, self._points)
-        terms = reward_terms(s, dist, action, last_action)
+        cond = stage_conditions(dist)
+        if advance is not None:  # the forward-only graph's rule: only the next point's touch counts
+            nxt = self._touched.clamp(max=N_POINTS - 1).unsqueeze(-1)
+            self._touched += (cond[:, 0].gather(-1, nxt).squeeze(-1) & (self._touched < N_POINTS) & advance).long()
+        terms = reward_terms(s, dist, action, last_action, self._touched if self.track_saturates else None)
         blocks = observations(s, self._points, dist, action, frame)
         agents = dict(blocks, observation=torch.cat([blocks[k] for k in EE_OBS_BLOCKS], -1), reward_terms=terms,
-                      stage_conditions=stage_conditions(dist), reward=default_reward(terms),
+                      stage_conditions=cond, reward=default_reward(terms),
                       action_clipped=torch.zeros(self.num_worlds, 1, dtype=torch.bool))
         N = self.num_worlds
         return TensorDict({"agents": TensorDict(agents, batch_size=(N, 1))}, batch_size=(N,))

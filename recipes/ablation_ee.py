@@ -1,6 +1,6 @@
 """The paper's curriculum ablation: 4-stage EE tracking, dynamic vs Liu et al. (max) and (min).
 
-    python recipes/ablation_ee.py                          # 3 schedules x 3 seeds, 150 iterations each
+    python recipes/ablation_ee.py                          # 3 schedules x 3 seeds, 300 iterations each
     python recipes/ablation_ee.py seeds=[0] iterations=50  # a quicker look
 
 Every run trains ``recipes/train.py`` on ``env.task=ee_tracking`` with the same budget

@@ -254,3 +254,15 @@ def test_scripted_policy_on_mujoco_touches_all_points_in_time():
     assert ended.all()
     box = torch.from_numpy(env.backend.physics.qpos[:, env.backend.idx.box_qpos : env.backend.idx.box_qpos + 2])
     assert ((box[:, 0] - BOX_PARK_X).abs() < 0.01).all()  # the parked box stayed where it was put
+
+
+@pytest.mark.parametrize("saturates", [True, False])
+def test_touched_points_keep_full_tracking_reward(saturates):
+    """Once point 1 is touched its term stays 1 (saturated) or follows the EE (plain kernel)."""
+    env = EETrackingEnv(num_worlds=2, backend="kinematic", track_saturates=saturates)
+    td = env.reset()
+    env._touched[:] = torch.tensor([1, 0])
+    td = env.step(td.set(("agents", "action"), _neutral(env)))
+    track_1 = td["next", "agents", "reward_terms"][:, 0, EE_REWARD_TERMS.index("track_1")]
+    assert track_1[1] < 0.9  # the start EE is >= MIN_GAP from point 1
+    assert (track_1[0] == 1.0) == saturates

@@ -29,7 +29,7 @@ from torchrl.envs import EnvBase
 from pnp.backend import Backend, MujocoBackend
 from pnp.box import SINGLE_ROBOT_BOXES
 from pnp.ee_task import (
-    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_SATURATES, default_reward, observations,
+    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_RULES, default_reward, observations,
     point_distances, reward_terms, sample_ee_layout, stage_conditions,
 )
 from pnp.envs.pnp_env import _torch_single_threaded
@@ -47,7 +47,7 @@ class EETrackingEnv(EnvBase):
 
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
                  nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
-                 track_saturates: bool = TRACK_SATURATES, device="cpu"):
+                 track_rule: str = "gated", device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
         if max_episode_steps < 1:
@@ -58,7 +58,9 @@ class EETrackingEnv(EnvBase):
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
         self.max_steps = int(max_episode_steps)
-        self.track_saturates = bool(track_saturates)  # see pnp.ee_task.TRACK_SATURATES
+        if track_rule not in TRACK_RULES:
+            raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
+        self.track_rule = track_rule  # see pnp.ee_task.TRACK_RULES
         self._make_specs()
         N = num_worlds
         self._goal, self._init_goal_dist = torch.zeros(N, 2), torch.ones(N)  # unused PnPState fields
@@ -175,7 +177,7 @@ class EETrackingEnv(EnvBase):
         if advance is not None:  # the forward-only graph's rule: only the next point's touch counts
             nxt = self._touched.clamp(max=N_POINTS - 1).unsqueeze(-1)
             self._touched += (cond[:, 0].gather(-1, nxt).squeeze(-1) & (self._touched < N_POINTS) & advance).long()
-        terms = reward_terms(s, dist, action, last_action, self._touched if self.track_saturates else None)
+        terms = reward_terms(s, dist, action, last_action, self._touched, self.track_rule)
         blocks = observations(s, self._points, dist, action, frame)
         agents = dict(blocks, observation=torch.cat([blocks[k] for k in EE_OBS_BLOCKS], -1), reward_terms=terms,
                       stage_conditions=cond, reward=default_reward(terms),

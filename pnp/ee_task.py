@@ -44,12 +44,17 @@ EPISODE_S = 20.0
 # (10 cm) pays for the last centimetres; their mean stays in [0, 1].
 TRACK_SIGMA = (1.0, 0.1)
 TRACK_MU = 10.0  # same for every point: the stages are the same task (paper)
-# A touched point's term stays at its maximum for the rest of the episode. Unsaturated, the
-# points compete: being at point 2 pays as much as being at point 1, so as the curriculum
-# raises rho of track_2 the policy skips point 1 (measured, dynamic schedule, seed 0: the
-# share of episodes ending in S1 fell from 1.0 to 0.28 within 90 iterations, all others
-# ending in S0; results/ablation_ee_unsaturated/). Saturated, touching is never undone.
-TRACK_SATURATES = True
+# How point k's term depends on the points touched so far (``track_rule``):
+#   "plain":     the distance kernel always;
+#   "saturated": 1 once point k is touched, else the kernel;
+#   "gated":     0 before point k's turn, the kernel on its turn, 1 once touched (default).
+# Ungated, a later point pays before its turn, and Eq. 2 lowers rho of a stage's terms as
+# soon as episodes end past it: the policy learns to skip point 1. Measured, dynamic
+# schedule, seed 0 (results/ablation_ee_track_rules/): the share of episodes ending in S1
+# rose to 0.98-1.0 and then fell to 0.28 ("plain", 150 iterations) and 0.42 ("saturated",
+# 150 iterations) as rho of track_2 rose, the rest ending in S0. Gated, each point pays
+# only when it is next, as grasping gates lifting in pick-and-place.
+TRACK_RULES = ("plain", "saturated", "gated")
 # A parked box: both backends need one, so it rests 50 m away, out of any walk's reach
 # (20 s at <= 1 m/s), where no reward, condition or observation looks at it.
 BOX_PARK_X = 50.0
@@ -130,16 +135,20 @@ def stage_conditions(dist: torch.Tensor) -> torch.Tensor:
 
 
 def reward_terms(s: PnPState, dist: torch.Tensor, action: torch.Tensor, last_action: torch.Tensor,
-                 touched: torch.Tensor | None = None) -> torch.Tensor:
+                 touched: torch.Tensor | None = None, rule: str = "plain") -> torch.Tensor:
     """Float [N, R, len(EE_REWARD_TERMS)]; the fixed terms as in ``pnp.task.reward_terms``.
 
-    ``touched`` [N]: points touched so far; their tracking terms stay at 1 (see
-    ``TRACK_SATURATES``). None: every term is the plain kernel.
+    ``touched`` [N]: points touched so far, for ``rule`` "saturated" or "gated" (see
+    ``TRACK_RULES``).
     """
+    if rule not in TRACK_RULES:
+        raise ValueError(f"track rule must be one of {TRACK_RULES}, got {rule!r}")
     track = 0.5 * (torch.exp(dist * (-1.0 / TRACK_SIGMA[0])) + torch.exp(dist * (-1.0 / TRACK_SIGMA[1])))
-    if touched is not None:
-        done = _POINT_INDEX < touched[:, None, None]  # [N, 1, P]
-        track = torch.where(done, 1.0, track)
+    if rule != "plain":
+        touched = touched[:, None, None]  # [N, 1, 1] against point indices [P]
+        track = torch.where(_POINT_INDEX < touched, 1.0, track)
+        if rule == "gated":
+            track = torch.where(_POINT_INDEX > touched, 0.0, track)
     fixed = [action_rate(action, last_action), joint_limit_excess(s.arm_q)]
     return torch.cat([track, *(f.unsqueeze(-1) for f in fixed)], -1)
 

@@ -256,13 +256,18 @@ def test_scripted_policy_on_mujoco_touches_all_points_in_time():
     assert ((box[:, 0] - BOX_PARK_X).abs() < 0.01).all()  # the parked box stayed where it was put
 
 
-@pytest.mark.parametrize("saturates", [True, False])
-def test_touched_points_keep_full_tracking_reward(saturates):
-    """Once point 1 is touched its term stays 1 (saturated) or follows the EE (plain kernel)."""
-    env = EETrackingEnv(num_worlds=2, backend="kinematic", track_saturates=saturates)
+@pytest.mark.parametrize("rule", ["plain", "saturated", "gated"])
+def test_track_rules(rule):
+    """World 0 has touched point 1, world 1 none: point 1's term is 1 once touched unless
+    plain; point 3's term is 0 before its turn when gated."""
+    env = EETrackingEnv(num_worlds=2, backend="kinematic", track_rule=rule)
     td = env.reset()
     env._touched[:] = torch.tensor([1, 0])
     td = env.step(td.set(("agents", "action"), _neutral(env)))
-    track_1 = td["next", "agents", "reward_terms"][:, 0, EE_REWARD_TERMS.index("track_1")]
+    terms = td["next", "agents", "reward_terms"][:, 0]
+    track_1, track_3 = terms[:, EE_REWARD_TERMS.index("track_1")], terms[:, EE_REWARD_TERMS.index("track_3")]
     assert track_1[1] < 0.9  # the start EE is >= MIN_GAP from point 1
-    assert (track_1[0] == 1.0) == saturates
+    assert (track_1[0] == 1.0) == (rule != "plain")
+    assert (track_3 == 0.0).all() == (rule == "gated") and (track_3 > 0).all() == (rule != "gated")
+    with pytest.raises(ValueError, match="track_rule must be one of"):
+        EETrackingEnv(num_worlds=1, backend="kinematic", track_rule="sometimes")

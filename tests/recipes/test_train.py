@@ -99,6 +99,8 @@ def test_warm_start_copies_weights(tmp_path):
     b = _common.load_checkpoint(tmp_path / "dst" / "checkpoint.pt")
     for k in a["actor"]:
         assert torch.equal(a["actor"][k], b["actor"][k]), k
+    assert a["optim"]["param_groups"][0]["lr"] == b["optim"]["param_groups"][0]["lr"]
+    assert torch.equal(a["optim"]["state"][0]["exp_avg"], b["optim"]["state"][0]["exp_avg"])
 
 
 def test_plots_standalone(tmp_path):

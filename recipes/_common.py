@@ -117,6 +117,33 @@ class ObsNorm(nn.Module):
         self.count.fill_(total)
 
 
+@torch.no_grad()
+def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int]:
+    """Warm start into an env where inputs that never moved now move: keep every net's
+    function on the old data, but make it blind to those inputs until it learns them.
+
+    Observation entries with running variance below ``tol`` (the kinematic backend's wrist
+    roll, pad touch before any grasp) would hit the +-clip after normalisation the first
+    time they change. Their first-layer weights are folded into the bias at the old
+    (constant) input value and zeroed; their statistics become mean 0, variance 1.
+    Returns the folded indices.
+    """
+    idx = (obs_norm.var < tol).nonzero().view(-1)
+    if not len(idx):
+        return []
+    const = obs_norm(obs_norm.mean.float().unsqueeze(0))[0, idx]  # the normalised old value
+    n_obs = obs_norm.mean.numel()
+    for net in nets:
+        w, b = net.mlp.params["0", "weight"], net.mlp.params["0", "bias"]
+        per_agent = w.shape[-1] // net.mlp.n_agents if net.mlp.centralized else w.shape[-1]
+        for start in range(0, w.shape[-1], per_agent):  # [obs | stage] per agent when centralised
+            cols = start + idx
+            b += w[..., cols] @ const.to(w)
+            w[..., cols] = 0.0
+    obs_norm.mean[idx], obs_norm.var[idx] = 0.0, 1.0
+    return idx.tolist()
+
+
 class AgentNet(nn.Module):
     """A MultiAgentMLP over [normalised observation | stage one-hot]: the teacher sees its stage."""
 

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    OBS, collect, episode_metrics, load_checkpoint, make_env, make_loss, make_models, policy_kl,
+    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl,
     resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
 )
 from plots import plot_training  # noqa: E402
@@ -168,6 +168,9 @@ def train(cfg: DictConfig) -> dict:
             # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
             # (entropy -19) policy to KL 74 in its first iteration (measured).
             optim.load_state_dict(init["optim"])
+            if obs_norm is not None and cfg.get("warm_start_fold_constant"):
+                folded = fold_constant_inputs(obs_norm, [actor.module[0].module, critic.module])
+                print(f"warm start: folded constant observation entries {folded}")
             if cfg.get("warm_start_curriculum"):  # rho_j as they were: no reward-scale shock
                 env.transform.load_state_dict(init["curriculum"])
         carried = env.reset()

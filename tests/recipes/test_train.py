@@ -177,3 +177,23 @@ def test_warm_start_curriculum_copies_rho(tmp_path):
     a = _common.load_checkpoint(tmp_path / "src" / "checkpoint.pt")["curriculum"]
     b = _common.load_checkpoint(tmp_path / "dst" / "checkpoint.pt")["curriculum"]
     assert torch.equal(a["transforms.2.rho"], b["transforms.2.rho"]) and not (a["transforms.2.rho"] == 0.1).all()
+
+
+def test_fold_constant_inputs_keeps_outputs_and_blinds_the_nets():
+    torch.manual_seed(0)
+    n_obs = 5
+    norm = _common.ObsNorm(n_obs)
+    data = torch.randn(256, n_obs)
+    data[:, 2] = 0.5  # an entry that never moved
+    norm.update(data)
+    for centralised in (False, True):
+        net = _common.AgentNet(n_obs + 2, 3, 2, centralised, [8], obs_norm=norm)
+        old = net(data[:4, None].expand(4, 2, n_obs), torch.zeros(4, 2, 2))
+        state = {k: v.clone() for k, v in norm.state_dict().items()}
+        assert _common.fold_constant_inputs(norm, [net]) == [2]
+        new = net(data[:4, None].expand(4, 2, n_obs), torch.zeros(4, 2, 2))
+        torch.testing.assert_close(new, old)
+        moved = data[:4, None].expand(4, 2, n_obs).clone()
+        moved[..., 2] = 3.0  # the entry moves: the folded nets do not see it
+        torch.testing.assert_close(net(moved, torch.zeros(4, 2, 2)), old)
+        norm.load_state_dict(state)

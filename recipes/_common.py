@@ -32,6 +32,7 @@ LOG_PROB = ("agents", "action_log_prob")
 VALUE = ("agents", "state_value")
 LOC, SCALE = ("agents", "loc"), ("agents", "scale")
 EPISODE_STAGE = ("agents", "episode_stage")
+GRASP_ENTRY = 7  # the grasp probability's index in the action (pnp.task.ACTION_NAMES)
 N_STAGES = pnp_default_stage_graph().n_stages  # of the pick-and-place task
 # env.task -> (stage graph, reward-schedule kwargs): what the curriculum needs of a task.
 TASKS = {
@@ -159,6 +160,24 @@ class AgentNet(nn.Module):
         return self.head(self.mlp(torch.cat([self.obs_norm(obs), stage], -1)))
 
 
+class ScaleFloor(nn.Module):
+    """Lower bounds on the policy's pre-tanh std, per action entry, around a param extractor.
+
+    Why: PPO moves the mean by a fraction of the std per iteration, so an entry whose std
+    has collapsed barely moves. The grasp probability needs to move from "keep open" to
+    "close and hold" long after the arm's entries have sharpened (model.grasp_min_scale).
+    """
+
+    def __init__(self, extractor: nn.Module, floor: torch.Tensor):
+        super().__init__()
+        self.extractor = extractor
+        self.register_buffer("floor", floor, persistent=False)  # config, not state
+
+    def forward(self, x: torch.Tensor):
+        loc, scale = self.extractor(x)
+        return loc, torch.maximum(scale, self.floor)
+
+
 class PopArt(nn.Module):
     """Critic head: an affine map in normalised space, read out at the real return scale.
 
@@ -218,8 +237,14 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
     n_in = n_obs + env.observation_spec[STAGE_ONE_HOT].shape[-1]
     spec = env.full_action_spec_unbatched[ACTION]
     obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None  # one instance, shared by actor and critic
+    head = NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}")
+    grasp_floor = float(model_cfg.get("grasp_min_scale", 0.0))
+    if grasp_floor > 0:
+        floor = torch.zeros(spec.shape[-1])
+        floor[GRASP_ENTRY] = grasp_floor
+        head = ScaleFloor(head, floor)
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
-                         head=NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}"))
+                         head=head)
     actor = ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[LOC, SCALE]),
         in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=TanhNormal,

@@ -197,3 +197,11 @@ def test_fold_constant_inputs_keeps_outputs_and_blinds_the_nets():
         moved[..., 2] = 3.0  # the entry moves: the folded nets do not see it
         torch.testing.assert_close(net(moved, torch.zeros(4, 2, 2)), old)
         norm.load_state_dict(state)
+
+
+def test_grasp_min_scale_floors_only_the_grasp_entry():
+    cfg = _cfg("train", [*TINY, "model.grasp_min_scale=0.3", "model.init_scale=0.01"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    scale = actor(env.reset())[_common.SCALE]
+    assert torch.all(scale[..., _common.GRASP_ENTRY] == 0.3) and torch.all(scale[..., :7] < 0.3)

@@ -1,8 +1,11 @@
-"""A scripted single-robot pick-and-place policy acting on the env's observation blocks.
+"""A scripted pick-and-place policy acting on the env's observation blocks, for 1 or 2 robots.
 
-Approach the nearer handle from outside the box, descend, grasp, lift, carry the box to
-the goal, lower it and release. It proves the stage conditions are reachable on every
-backend and gives the rendering and benchmark recipes meaningful motion.
+Approach a handle from outside the box, descend, grasp, lift, carry the box to the goal,
+lower it and release. One robot takes the nearer handle. Two robots split the handles
+(the assignment with the shorter summed distance, fixed at the episode start) and move
+in lockstep: neither lifts, lowers nor releases before both are ready (``SYNCED``), and
+both carry at the same world velocity. It proves the stage conditions are reachable on
+every backend and gives the rendering and benchmark recipes meaningful motion.
 """
 from __future__ import annotations
 
@@ -14,9 +17,12 @@ from tensordict import TensorDictBase
 from pnp.task import ACTION_HIGH, ACTION_LOW, OBS_FIELDS
 
 APPROACH, DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE = range(7)
+SYNCED = (GRASP, LIFT, CARRY, LOWER)  # with two robots, leaving these waits for both
 REACH_X = 0.75  # m, handle distance in front of the base when grasping (default EE x)
 HOVER = 0.15  # m above the handle before descending
 LIFT_BY = 0.4  # m: a box hanging from one handle tilts, its low corner must clear
+CARRY_SPEED_2 = 0.45  # m/s, two robots: under the 0.5 m/s lateral clip in any heading
+LIFT_BY_2, RAMP_2 = 0.15, 0.015  # m and m per step, two robots
 
 
 def _field(td, block, name):
@@ -33,12 +39,16 @@ class ScriptedPnP:
         self.z_grasp = torch.zeros(shape)
         self.box_z0 = torch.zeros(shape)
         self.ee_grasp = torch.zeros(*shape, 2)
+        self.handle = torch.zeros(shape, dtype=torch.long)  # index of the handle each robot takes
+        self.assigned = torch.zeros(num_worlds, dtype=torch.bool)
+        self._synced = torch.tensor(SYNCED)
         self.lo, self.hi = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
 
     def reset(self, mask: torch.Tensor) -> None:
         mask = mask.reshape(-1)
         self.phase[mask] = APPROACH
         self.timer[mask] = 0
+        self.assigned[mask] = False
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         handles = _field(td, "object", "handles").unflatten(-1, (2, 3))
@@ -46,7 +56,8 @@ class ScriptedPnP:
         bar = _field(td, "object", "box_y_axis")
         ee = _field(td, "ego", "ee_pos")
         goal = _field(td, "goal", "goal_xy")
-        k = handles[..., :2].norm(dim=-1).argmin(-1, keepdim=True)
+        self._assign(handles[..., :2].norm(dim=-1))
+        k = self.handle.unsqueeze(-1)
         h = torch.gather(handles, -2, k[..., None].expand(*k.shape, 3)).squeeze(-2)
         u = box[..., :2] - h[..., :2]
         u = u / u.norm(dim=-1, keepdim=True).clamp(min=1e-6)  # from handle into the box
@@ -80,21 +91,30 @@ class ScriptedPnP:
         a[g, 0:3] = 0.0
         a[g, 3:6] = h[g]
         self._advance(g, self.timer >= 4)
+        two = ph.shape[1] == 2
+        # Two robots hold a level box: a small lift, ramped so both arms rise together
+        # (heights apart by more than the grasp tolerance pull a handle out of a gripper).
+        lift_by = LIFT_BY_2 if two else LIFT_BY
+        ramp = torch.clamp(RAMP_2 * self.timer, max=lift_by) if two else torch.full_like(self.z_grasp, lift_by)
         for p in (LIFT, CARRY):
             m = ph == p
             a[m, 0:3] = 0.0
             a[m, 3:5] = self.ee_grasp[m]
-            a[m, 5] = (self.z_grasp + LIFT_BY)[m]
-        self._advance(ph == LIFT, box[..., 2] - self.box_z0 > 0.08)
+            a[m, 5] = (self.z_grasp + (ramp if p == LIFT else lift_by))[m]
+        self._advance(ph == LIFT, (box[..., 2] - self.box_z0 > 0.08) & (ramp >= lift_by))
         c = ph == CARRY
         to_goal = goal - box[..., :2]
-        a[c, 0:2] = (1.2 * to_goal)[c]
+        v = 1.2 * to_goal
+        if v.shape[1] == 2:  # one world speed for both, below every clip: the bases keep their spacing
+            v = v * (CARRY_SPEED_2 / v.norm(dim=-1, keepdim=True).clamp(min=CARRY_SPEED_2))
+        a[c, 0:2] = v[c]
         self._advance(c, to_goal.norm(dim=-1) < 0.12)
         lw = ph == LOWER
         a[lw, 0:3] = 0.0
         a[lw, 3:5] = self.ee_grasp[lw]
-        a[lw, 5] = self.z_grasp[lw] + 0.005
-        self._advance(lw, self.timer > 10)
+        down = torch.clamp(lift_by - RAMP_2 * self.timer, min=0.005) if two else torch.full_like(self.z_grasp, 0.005)
+        a[lw, 5] = (self.z_grasp + down)[lw]
+        self._advance(lw, self.timer > (10 + lift_by / RAMP_2 if two else 10))
         r = ph == RELEASE
         a[r, 0:3] = 0.0
         a[r, 3:5] = self.ee_grasp[r]
@@ -102,7 +122,25 @@ class ScriptedPnP:
         td.set(("agents", "action"), torch.max(torch.min(a, self.hi), self.lo))
         return td
 
+    def _assign(self, dist: torch.Tensor) -> None:
+        """Handles for worlds not yet assigned; ``dist`` [N, R, 2]: base to each handle."""
+        new = ~self.assigned
+        if not new.any():
+            return
+        if dist.shape[1] == 1:
+            pick = dist.argmin(-1)
+        else:  # robot 0 takes handle 0 (robot 1 handle 1) or the swap, whichever is shorter
+            swap = dist[:, 0, 1] + dist[:, 1, 0] < dist[:, 0, 0] + dist[:, 1, 1]
+            pick = torch.stack([swap.long(), 1 - swap.long()], -1)
+        self.handle = torch.where(new.unsqueeze(-1), pick, self.handle)
+        self.assigned |= new
+
     def _advance(self, where: torch.Tensor, cond: torch.Tensor) -> None:
+        """Move the robots in ``where`` (all in one phase) on where ``cond`` holds."""
         go = where & cond
+        if go.shape[1] == 2:
+            # Lockstep phases: a robot leaves only together with its partner.
+            synced = where & torch.isin(self.phase, self._synced)
+            go = torch.where(synced, go.all(-1, keepdim=True).expand_as(go), go)
         self.phase = torch.where(go, self.phase + 1, self.phase)
         self.timer = torch.where(go, torch.zeros_like(self.timer), self.timer)

@@ -347,3 +347,20 @@ def test_scripted_policy_succeeds():
     ok = first[success]
     assert (ok >= 0).all()  # all six conditions reached ...
     assert (ok[:, 1:] >= ok[:, :-1]).all(), ok  # ... in order
+
+
+def test_two_scripted_robots_split_the_handles_and_deliver_the_box():
+    n = 16
+    env = PnPEnv(num_worlds=n, num_robots=2, backend="kinematic", seed=1)
+    pol = ScriptedPnP(n, 2)
+    td = env.reset()
+    success = torch.zeros(n, dtype=torch.bool)
+    for _ in range(env.max_steps):
+        td = env.step(pol(td))
+        success |= td["next", "success"].squeeze(-1)
+        done = td["next", "done"].squeeze(-1)
+        td = env.step_mdp(td)
+        if (success | done).all():
+            break
+    assert (pol.handle.sum(-1) == 1).all()  # one handle each
+    assert success.all()

@@ -2,6 +2,7 @@
 
     python recipes/render.py                                  # scripted policy, one robot
     python recipes/render.py --out results/scripted_pnp.gif --seed 3 --every 2
+    python recipes/render.py --robots 2 --out results/scripted_dual_pnp.gif --every 3
 
 Needs Debian's ``libegl1 libegl-mesa0 libgl1-mesa-dri`` (``make render-deps``).
 """
@@ -58,8 +59,8 @@ def main(argv=None):
     p.add_argument("--every", type=int, default=2, help="keep every n-th HL step (10 Hz)")
     p.add_argument("--out", default="results/scripted_pnp.gif")
     args = p.parse_args(argv)
-    if args.robots != 1:
-        raise SystemExit("the scripted policy drives one robot; pass a trained checkpoint for two")
+    if args.robots not in (1, 2):
+        raise SystemExit(f"--robots must be 1 or 2, got {args.robots}")
     t0 = time.time()
     torch.manual_seed(args.seed)
     env = PnPEnv(num_worlds=1, num_robots=args.robots, seed=args.seed)

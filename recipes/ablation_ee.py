@@ -86,7 +86,24 @@ def evaluate_policy(run: Path, trials: int, seed: int) -> dict:
 
 def first_majority_in_final(rows: list[dict]) -> int | None:
     """First iteration at which more than half of the episodes that ended, ended in S4."""
-    return next((r["iteration"] for r in rows if r.get(FINAL, 0.0) > 0.5), None)
+    return first_majority_at_least(rows, 4)
+
+
+def first_majority_at_least(rows: list[dict], k: int) -> int | None:
+    """First iteration at which more than half of the episodes that ended, ended in S_k or later."""
+    def share(r):
+        return sum(v for key, v in r.items() if key.startswith("stage_share/S") and int(key[13:]) >= k
+                   and math.isfinite(v))
+    return next((r["iteration"] for r in rows if r.get("episodes", 0) > 0 and share(r) > 0.5), None)
+
+
+def final_mean(rows: list[dict], key: str, frac: float = 0.1) -> float | None:
+    """Episode-weighted mean of ``key`` over the last ``frac`` of the iterations."""
+    last = max(r["iteration"] for r in rows)
+    tail = [r for r in rows if r["iteration"] > (1 - frac) * last and r.get("episodes", 0) > 0
+            and math.isfinite(r.get(key, math.nan))]
+    n = sum(r["episodes"] for r in tail)
+    return sum(r[key] * r["episodes"] for r in tail) / n if n else None
 
 
 def windowed(rows: list[dict], key: str, window: int) -> tuple[np.ndarray, np.ndarray]:
@@ -149,6 +166,8 @@ def run_ablation(cfg: DictConfig) -> dict:
             last = rows[-1] if rows else {}
             results[schedule][f"seed_{seed}"] = {
                 "iterations_to_S4_majority": first_majority_in_final(rows),
+                "iterations_to_majority_at_least": {f"S{k}": first_majority_at_least(rows, k) for k in range(1, 5)},
+                "final_mean_end_stage_train": final_mean(rows, "mean_end_stage"),
                 **evaluate_policy(run, int(cfg.eval_trials), int(cfg.eval_seed)),
                 "budget": {"iterations": last.get("iteration"), "frames": last.get("frames"),
                            "train_wall_s": last.get("wall_s")},
@@ -167,7 +186,8 @@ def _summary(by_seed: dict) -> dict:
         vals = [r[key] for r in by_seed.values() if r[key] is not None]
         return {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "n": len(vals)} if vals else None
 
-    return {k: stat(k) for k in ("iterations_to_S4_majority", "success_rate", "completion_time_mean_s")}
+    return {k: stat(k) for k in ("iterations_to_S4_majority", "final_mean_end_stage_train", "success_rate",
+                                 "completion_time_mean_s")}
 
 
 @hydra.main(config_path="config", config_name="ablation_ee", version_base="1.3")

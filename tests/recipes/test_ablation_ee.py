@@ -44,5 +44,9 @@ def test_first_majority_and_windows():
             for i, s in enumerate([0.0, 0.2, 0.6, 0.4, 0.9], start=1)]
     assert ablation_ee.first_majority_in_final(rows) == 3
     assert ablation_ee.first_majority_in_final(rows[:2]) is None
+    shares = [{"iteration": 1, "episodes": 4.0, "stage_share/S0": 0.5, "stage_share/S1": 0.25, "stage_share/S2": 0.25},
+              {"iteration": 2, "episodes": 4.0, "stage_share/S0": 0.25, "stage_share/S1": 0.5, "stage_share/S2": 0.25}]
+    assert [ablation_ee.first_majority_at_least(shares, k) for k in (1, 2)] == [2, None]
+    assert ablation_ee.final_mean(rows, "success_rate", frac=0.4) == 0.65  # iterations 4 and 5
     x, y = ablation_ee.windowed(rows, "success_rate", 2)
     assert list(x[:3]) == [2, 4, 6] and list(y[:3]) == [0.1, 0.5, 0.9]

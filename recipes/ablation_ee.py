@@ -158,7 +158,10 @@ def run_ablation(cfg: DictConfig) -> dict:
         results[schedule], curves[schedule] = {}, {}
         for seed in cfg.seeds:
             tcfg = train_config(cfg, schedule, int(seed))
-            train_recipe.train(tcfg)
+            if train_recipe.train(tcfg)["stopped_by_signal"]:
+                # The run checkpointed; stop here too (a caller sent SIGTERM/SIGINT), or this
+                # process would go on writing into the next runs' folders.
+                raise SystemExit(f"stopped by a signal during {schedule} seed {seed}; rerun to resume")
             backend = str(tcfg.env.backend)
             run = Path(tcfg.out_dir)
             rows = load_metrics(run / "metrics.jsonl")

@@ -225,7 +225,7 @@ def train(cfg: DictConfig) -> dict:
     if cfg.logger.backend == "wandb":
         logger.experiment.finish()
     env.close()
-    return {"out_dir": str(out_dir), "checkpoint": str(ckpt_path), **row}
+    return {"out_dir": str(out_dir), "checkpoint": str(ckpt_path), "stopped_by_signal": stop_signal.received, **row}
 
 
 @hydra.main(config_path="config", config_name="train", version_base="1.3")

@@ -5,6 +5,7 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -50,3 +51,18 @@ def test_first_majority_and_windows():
     assert ablation_ee.final_mean(rows, "success_rate", frac=0.4) == 0.65  # iterations 4 and 5
     x, y = ablation_ee.windowed(rows, "success_rate", 2)
     assert list(x[:3]) == [2, 4, 6] and list(y[:3]) == [0.1, 0.5, 0.9]
+
+
+def test_a_signal_stops_the_whole_ablation(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_train(cfg):
+        calls.append(cfg.curriculum.schedule)
+        return {"stopped_by_signal": True}
+
+    monkeypatch.setattr(ablation_ee.train_recipe, "train", fake_train)
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
+        cfg = compose("ablation_ee", overrides=[f"runs_dir={tmp_path}", f"out={tmp_path / 'a.json'}"])
+    with pytest.raises(SystemExit, match="stopped by a signal during dynamic seed 0"):
+        ablation_ee.run_ablation(cfg)
+    assert calls == ["dynamic"] and not (tmp_path / "a.json").exists()

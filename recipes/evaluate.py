@@ -156,6 +156,9 @@ def evaluate(cfg: DictConfig) -> dict:
         "max_episode_s": seconds(env_cfg.max_episode_steps or round(EPISODE_S / HL_DT)),
         **summarise(records), "seed": int(cfg.seed), "checkpoint": str(ckpt_path),
         "checkpoint_iteration": int(ckpt["counters"]["iteration"]), "checkpoint_frames": int(ckpt["counters"]["frames"]),
+        # This run's training (a warm-started run's source trained before: see warm_started_from).
+        "env_steps": int(ckpt["counters"]["frames"]), "train_wall_s": float(ckpt["counters"]["wall_s"]),
+        "warm_started_from": tcfg.get("warm_start"),
         "schedule": tcfg.curriculum.schedule if tcfg.curriculum.stage_rewards else "none",
         "wall_s": time.monotonic() - t0, **provenance(),
     }

@@ -59,7 +59,7 @@ def test_train_then_evaluate(tmp_path):
     ]))
     saved = json.loads((tmp_path / "eval.json").read_text())
     for key in ("backend", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
-                "command", "commit", "seed", "machine", "wall_s"):
+                "command", "commit", "seed", "machine", "wall_s", "env_steps", "train_wall_s", "warm_started_from"):
         assert key in saved, key
     assert saved["backend"] == "kinematic" and saved["trials"] == 6 == result["trials"]
     assert saved["start_range_m"] == [0.6, 5.0] and saved["max_episode_s"] == 1.5  # paper's layouts by default

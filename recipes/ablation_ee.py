@@ -152,7 +152,7 @@ def plot_curves(runs: dict[str, dict[int, list[dict]]], window: int, out_dir: Pa
 def run_ablation(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
+    t0, prov = time.monotonic(), provenance()  # before any output: the tree is still clean
     results, curves, backend = {}, {}, None
     for schedule in cfg.schedules:
         results[schedule], curves[schedule] = {}, {}
@@ -179,7 +179,7 @@ def run_ablation(cfg: DictConfig) -> dict:
     pngs = plot_curves(curves, int(cfg.window), out.parent)
     summary = {m: _summary(r) for m, r in results.items()}
     doc = {"task": "ee_tracking (4 points)", "backend": backend, "results": results, "summary": summary,
-           "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **provenance()}
+           "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
     return doc
 

@@ -301,7 +301,8 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     out["mean_end_stage"] = float(ended.float().mean()) if ended.numel() else math.nan
     won = nxt["success"].squeeze(-1) & done
     out["completion_time_s"] = seconds(nxt["step_count"].squeeze(-1)[won].float().mean()) if won.any() else math.nan
-    hist = torch.bincount(ended, minlength=batch[STAGE_ONE_HOT].shape[-1]).float()
+    one_hot = nxt.get(STAGE_ONE_HOT, None)  # the task's stage count (pick-and-place's if absent)
+    hist = torch.bincount(ended, minlength=N_STAGES if one_hot is None else one_hot.shape[-1]).float()
     for i, h in enumerate(hist):
         out[f"stage_share/S{i}"] = float(h / hist.sum()) if ended.numel() else math.nan
     return out

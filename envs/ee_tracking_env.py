@@ -24,7 +24,6 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
 from pnp.backend import Backend, MujocoBackend
 from pnp.box import SINGLE_ROBOT_BOXES
@@ -32,18 +31,16 @@ from pnp.ee_task import (
     EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_RULES, default_reward, observations,
     point_distances, reward_terms, sample_ee_layout, stage_conditions,
 )
-from pnp.envs.pnp_env import _torch_single_threaded
+from pnp.envs.pnp_env import RobotEnvBase, _torch_single_threaded
 from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT, BaseFrame
 
 _ACTION_LO, _ACTION_HI = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
 _NEUTRAL = torch.tensor([0.0, 0.0, 0.0, 0.75, 0.0, -0.30, 0.0, 0.0])  # as PnPEnv: the default EE pose
 
 
-class EETrackingEnv(EnvBase):
+class EETrackingEnv(RobotEnvBase):
     """Four-point EE tracking on ``backend`` "mujoco" or "kinematic"; episodes of
     ``max_episode_steps`` HL steps (default 200 = 20 s)."""
-
-    batch_locked = True
 
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
                  nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
@@ -105,9 +102,6 @@ class EETrackingEnv(EnvBase):
         self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
 
     # --- EnvBase hooks -------------------------------------------------------------------
-    def _set_seed(self, seed: int | None):
-        self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
-
     def _reset_worlds(self, ids: torch.Tensor):
         layout, points = sample_ee_layout(self._rng, len(ids))
         self.backend.reset(ids, layout)
@@ -115,21 +109,6 @@ class EETrackingEnv(EnvBase):
         self._touched[ids] = 0
         self._last_action[ids] = _NEUTRAL
         self._steps[ids] = 0
-
-    @_torch_single_threaded
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(self.num_worlds)
-        ids = torch.arange(self.num_worlds) if mask is None else mask.nonzero().squeeze(-1)
-        if len(ids):
-            self._reset_worlds(ids)
-        out = self._observe(self._last_action, self._last_action)
-        zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
-        out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
-                    "success": zeros.clone(), "diverged": zeros.clone()})
-        out.del_(("agents", "reward"))
-        return out
 
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -152,22 +131,6 @@ class EETrackingEnv(EnvBase):
                     "diverged": diverged.unsqueeze(-1)})
         return out
 
-    def _check_action(self, action: torch.Tensor | None):
-        expected = (self.num_worlds, 1, 8)
-        if action is None:
-            raise KeyError("missing ('agents', 'action') in the input tensordict")
-        if tuple(action.shape) != expected:
-            raise ValueError(f"('agents', 'action') has shape {tuple(action.shape)}, expected {expected}")
-        if not torch.isfinite(action.sum()):  # fast path as in PnPEnv
-            bad = ~torch.isfinite(action).all(-1).all(-1)
-            if bad.any():
-                raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {bad.nonzero().squeeze(-1).tolist()}")
-        action = action.float()
-        clipped_action = torch.clamp(action, _ACTION_LO, _ACTION_HI)
-        clipped = (clipped_action != action).any(-1)
-        self.clipped_count += int(clipped.sum())
-        return clipped_action, clipped
-
     def _observe(self, action, last_action, advance: torch.Tensor | None = None) -> TensorDict:
         """Outputs for the current state; ``advance`` [N]: worlds whose touch count may move."""
         s = self.backend.state(self._goal, self._init_goal_dist, action[..., 7])
@@ -185,27 +148,4 @@ class EETrackingEnv(EnvBase):
         N = self.num_worlds
         return TensorDict({"agents": TensorDict(agents, batch_size=(N, 1))}, batch_size=(N,))
 
-    # --- extras ------------------------------------------------------------------------------
-    _STATE = ("_points", "_touched", "_last_action", "_steps")
-
-    def get_state(self) -> dict:
-        """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
-        st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
-        st.update({k: getattr(self, k).clone() for k in self._STATE})
-        st["rng"] = self._rng.get_state()
-        st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
-        return st
-
-    def set_state(self, state: dict) -> None:
-        missing = [k for k in (*self._STATE, "rng", "counters") if k not in state]
-        if missing:
-            raise KeyError(f"env state is missing {missing}; present: {sorted(state)}")
-        self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
-        for k in self._STATE:
-            setattr(self, k, state[k].clone())
-        self._rng.set_state(state["rng"])
-        self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
-
-    def close(self, *, raise_if_closed: bool = True):
-        self.backend.close()
-        super().close(raise_if_closed=raise_if_closed)
+    _STATE = ("_points", "_touched", "_last_action", "_steps")  # episode bookkeeping (get_state)

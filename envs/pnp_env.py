@@ -60,10 +60,79 @@ def _torch_single_threaded(fn):
 _ACTION_LO, _ACTION_HI = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)  # built once, not per step
 
 
-class PnPEnv(EnvBase):
-    """Pick-and-place with ``num_robots`` in 1 or 2, on ``backend`` "mujoco" or "kinematic"."""
+class RobotEnvBase(EnvBase):
+    """What every batched env of this robot shares: seeding, (partial) resets through
+    ``_reset_worlds``/``_observe``, action checks, exact-resume state and closing.
+
+    Subclasses set ``num_worlds``, ``num_robots``, ``backend``, ``_last_action``,
+    ``clipped_count``, ``diverged_count`` and ``_STATE`` (their episode bookkeeping).
+    """
 
     batch_locked = True
+    _STATE: tuple[str, ...] = ()
+
+    def _set_seed(self, seed: int | None):
+        self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
+
+    @_torch_single_threaded
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_worlds)
+        ids = torch.arange(self.num_worlds) if mask is None else mask.nonzero().squeeze(-1)
+        if len(ids):
+            self._reset_worlds(ids)
+        out = self._observe(self._last_action, self._last_action)
+        zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
+        out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
+                    "success": zeros.clone(), "diverged": zeros.clone()})
+        out.del_(("agents", "reward"))
+        return out
+
+    def _check_action(self, action: torch.Tensor):
+        expected = (self.num_worlds, self.num_robots, 8)
+        if action is None:
+            raise KeyError("missing ('agents', 'action') in the input tensordict")
+        if tuple(action.shape) != expected:
+            raise ValueError(f"('agents', 'action') has shape {tuple(action.shape)}, expected {expected}")
+        # Fast path: a finite sum means every entry is finite (NaN/Inf propagate); a sum that
+        # overflows on huge finite values falls through to the exact per-world check.
+        if not torch.isfinite(action.sum()):
+            bad = ~torch.isfinite(action).all(-1).all(-1)
+            if bad.any():
+                worlds = bad.nonzero().squeeze(-1).tolist()
+                raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {worlds}")
+        action = action.float()
+        clipped_action = torch.clamp(action, _ACTION_LO, _ACTION_HI)
+        clipped = (clipped_action != action).any(-1)
+        self.clipped_count += int(clipped.sum())
+        return clipped_action, clipped
+
+    def get_state(self) -> dict:
+        """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
+        st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
+        st.update({k: getattr(self, k).clone() for k in self._STATE})
+        st["rng"] = self._rng.get_state()
+        st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
+        return st
+
+    def set_state(self, state: dict) -> None:
+        missing = [k for k in (*self._STATE, "rng", "counters") if k not in state]
+        if missing:
+            raise KeyError(f"env state is missing {missing}; present: {sorted(state)}")
+        self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
+        for k in self._STATE:
+            setattr(self, k, state[k].clone())
+        self._rng.set_state(state["rng"])
+        self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
+
+    def close(self, *, raise_if_closed: bool = True):
+        self.backend.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+
+class PnPEnv(RobotEnvBase):
+    """Pick-and-place with ``num_robots`` in 1 or 2, on ``backend`` "mujoco" or "kinematic"."""
 
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
@@ -128,9 +197,6 @@ class PnPEnv(EnvBase):
         return a.clamp(lo, hi)
 
     # --- EnvBase hooks -------------------------------------------------------------------
-    def _set_seed(self, seed: int | None):
-        self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
-
     def _reset_worlds(self, ids: torch.Tensor):
         layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range)
         self.backend.reset(ids, layout)
@@ -139,21 +205,6 @@ class PnPEnv(EnvBase):
         self._last_action[ids] = self._neutral_action()
         self._steps[ids] = 0
         self._was_lifted[ids] = False
-
-    @_torch_single_threaded
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(self.num_worlds)
-        ids = torch.arange(self.num_worlds) if mask is None else mask.nonzero().squeeze(-1)
-        if len(ids):
-            self._reset_worlds(ids)
-        out = self._observe(self._last_action, self._last_action)
-        zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
-        out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
-                    "success": zeros.clone(), "diverged": zeros.clone()})
-        out.del_(("agents", "reward"))
-        return out
 
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -188,25 +239,6 @@ class PnPEnv(EnvBase):
                     "success": success.unsqueeze(-1), "diverged": diverged.unsqueeze(-1)})
         return out
 
-    def _check_action(self, action: torch.Tensor):
-        expected = (self.num_worlds, self.num_robots, 8)
-        if action is None:
-            raise KeyError("missing ('agents', 'action') in the input tensordict")
-        if tuple(action.shape) != expected:
-            raise ValueError(f"('agents', 'action') has shape {tuple(action.shape)}, expected {expected}")
-        # Fast path: a finite sum means every entry is finite (NaN/Inf propagate); a sum that
-        # overflows on huge finite values falls through to the exact per-world check.
-        if not torch.isfinite(action.sum()):
-            bad = ~torch.isfinite(action).all(-1).all(-1)
-            if bad.any():
-                worlds = bad.nonzero().squeeze(-1).tolist()
-                raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {worlds}")
-        action = action.float()
-        clipped_action = torch.clamp(action, _ACTION_LO, _ACTION_HI)
-        clipped = (clipped_action != action).any(-1)
-        self.clipped_count += int(clipped.sum())
-        return clipped_action, clipped
-
     def _observe(self, action, last_action, closed=None) -> TensorDict:
         if closed is None:  # at reset: the neutral action's command
             closed = (action[..., 7] > 0.5).float()
@@ -226,27 +258,7 @@ class PnPEnv(EnvBase):
     # --- extras ------------------------------------------------------------------------------
     _STATE = ("_goal", "_init_goal_dist", "_last_action", "_steps", "_was_lifted")
 
-    def get_state(self) -> dict:
-        """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
-        st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
-        st.update({k: getattr(self, k).clone() for k in self._STATE})
-        st["rng"] = self._rng.get_state()
-        st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
-        return st
-
-    def set_state(self, state: dict) -> None:
-        missing = [k for k in (*self._STATE, "rng", "counters") if k not in state]
-        if missing:
-            raise KeyError(f"env state is missing {missing}; present: {sorted(state)}")
-        self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
-        for k in self._STATE:
-            setattr(self, k, state[k].clone())
-        self._rng.set_state(state["rng"])
-        self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""
         self.backend.push(world, np.asarray(force, dtype=np.float64))
 
-    def close(self, *, raise_if_closed: bool = True):
-        self.backend.close()
-        super().close(raise_if_closed=raise_if_closed)

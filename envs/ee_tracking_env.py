@@ -25,7 +25,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 
-from pnp.backend import Backend, MujocoBackend
+from pnp.backend import Backend
 from pnp.box import SINGLE_ROBOT_BOXES
 from pnp.ee_task import (
     EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_RULES, default_reward, observations,
@@ -51,7 +51,7 @@ class EETrackingEnv(RobotEnvBase):
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps!r}")
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, 1
-        self.backend = self._make_backend(backend, nthread)
+        self.backend = self._make_backend(backend, nthread, SINGLE_ROBOT_BOXES[0])
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
         self.max_steps = int(max_episode_steps)
@@ -69,17 +69,6 @@ class EETrackingEnv(RobotEnvBase):
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
         self._reset_worlds(torch.arange(N))
-
-    def _make_backend(self, backend, nthread) -> Backend:
-        if isinstance(backend, Backend):
-            return backend
-        if backend == "mujoco":
-            return MujocoBackend(self.num_worlds, 1, SINGLE_ROBOT_BOXES[0], nthread=nthread)
-        if backend == "kinematic":
-            from pnp.kinematic import KinematicBackend  # optional second backend
-
-            return KinematicBackend(self.num_worlds, 1)
-        raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
 
     @property
     def points_touched(self) -> torch.Tensor:

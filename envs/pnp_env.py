@@ -71,6 +71,17 @@ class RobotEnvBase(EnvBase):
     batch_locked = True
     _STATE: tuple[str, ...] = ()
 
+    def _make_backend(self, backend, nthread, box: BoxAsset) -> Backend:
+        if isinstance(backend, Backend):
+            return backend
+        if backend == "mujoco":
+            return MujocoBackend(self.num_worlds, self.num_robots, box, nthread=nthread)
+        if backend == "kinematic":
+            from pnp.kinematic import KinematicBackend  # optional second backend
+
+            return KinematicBackend(self.num_worlds, self.num_robots)
+        raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
+
     def _set_seed(self, seed: int | None):
         self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
 
@@ -148,7 +159,7 @@ class PnPEnv(RobotEnvBase):
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
-        self.backend = self._make_backend(backend, nthread)
+        self.backend = self._make_backend(backend, nthread, self.box_assets[0])
         self.max_steps = int(round(EPISODE_S / HL_DT))
         self._make_specs()
         N, R = num_worlds, num_robots
@@ -161,17 +172,6 @@ class PnPEnv(RobotEnvBase):
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
         self._reset_worlds(torch.arange(N))
-
-    def _make_backend(self, backend, nthread) -> Backend:
-        if isinstance(backend, Backend):
-            return backend
-        if backend == "mujoco":
-            return MujocoBackend(self.num_worlds, self.num_robots, self.box_assets[0], nthread=nthread)
-        if backend == "kinematic":
-            from pnp.kinematic import KinematicBackend  # optional second backend
-
-            return KinematicBackend(self.num_worlds, self.num_robots)
-        raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
 
     # --- specs -------------------------------------------------------------------------
     def _make_specs(self):

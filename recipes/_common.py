@@ -17,6 +17,7 @@ from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, 
 from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
+from pnp.distributions import TanhNormalGripper
 from pnp.ee_task import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.pnp_env import PnPEnv
@@ -245,11 +246,19 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
         head = ScaleFloor(head, floor)
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
                          head=head)
+    dist_kwargs = {"low": spec.space.low, "high": spec.space.high}
+    # Checkpoints from before the Bernoulli gripper have no key: they are TanhNormal throughout.
+    grasp_dist = str(model_cfg.get("grasp_dist", "tanh_normal"))
+    if grasp_dist == "bernoulli":
+        dist_cls, dist_kwargs["gripper_index"] = TanhNormalGripper, GRASP_ENTRY
+    elif grasp_dist == "tanh_normal":
+        dist_cls = TanhNormal
+    else:
+        raise ValueError(f"model.grasp_dist must be 'bernoulli' or 'tanh_normal', got {grasp_dist!r}")
     actor = ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[LOC, SCALE]),
-        in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=TanhNormal,
-        distribution_kwargs={"low": spec.space.low, "high": spec.space.high}, return_log_prob=True,
-        log_prob_key=LOG_PROB,
+        in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=dist_cls,
+        distribution_kwargs=dist_kwargs, return_log_prob=True, log_prob_key=LOG_PROB,
     )
     popart = PopArt(popart_beta) if value_norm == "popart" else None
     critic_net = AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells, head=popart, obs_norm=obs_norm)
@@ -309,9 +318,14 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
 
 
 def policy_kl(actor, td: TensorDictBase) -> float:
-    """Mean KL(behaviour || current) of the pre-tanh Gaussians: the TanhNormal KL, as tanh is a bijection."""
+    """Mean KL(behaviour || current) of the pre-tanh Gaussians: the TanhNormal KL, as tanh is a bijection
+    (plus the gripper Bernoulli's under ``model.grasp_dist=bernoulli``)."""
     with torch.no_grad():
         new = actor.module[0](td.select(OBS, STAGE_ONE_HOT).copy())
+        make_dist = actor.module[-1].get_dist  # the ProbabilisticTensorDictModule: params -> distribution
+        old_d, new_d = make_dist(td.select(LOC, SCALE).detach()), make_dist(new.select(LOC, SCALE))
+    if isinstance(old_d, TanhNormalGripper):
+        return float(old_d.kl_to(new_d).mean())
     mu0, s0, mu1, s1 = td[LOC].detach(), td[SCALE].detach(), new[LOC], new[SCALE]
     kl = torch.log(s1 / s0) + (s0**2 + (mu0 - mu1) ** 2) / (2 * s1**2) - 0.5
     return float(kl.sum(-1).mean())

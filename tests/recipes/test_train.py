@@ -200,8 +200,25 @@ def test_fold_constant_inputs_keeps_outputs_and_blinds_the_nets():
 
 
 def test_grasp_min_scale_floors_only_the_grasp_entry():
-    cfg = _cfg("train", [*TINY, "model.grasp_min_scale=0.3", "model.init_scale=0.01"])
+    cfg = _cfg("train", [*TINY, "model.grasp_dist=tanh_normal", "model.grasp_min_scale=0.3", "model.init_scale=0.01"])
     env = _common.make_env(cfg.env, cfg.curriculum, 0)
     actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
     scale = actor(env.reset())[_common.SCALE]
     assert torch.all(scale[..., _common.GRASP_ENTRY] == 0.3) and torch.all(scale[..., :7] < 0.3)
+
+
+def test_bernoulli_gripper_actions_are_binary_and_deterministic_mode_thresholds():
+    cfg = _cfg("train", TINY)
+    assert cfg.model.grasp_dist == "bernoulli"
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    td = env.reset()
+    with _common.set_interaction_type(_common.InteractionType.RANDOM):
+        out = actor(td.clone())
+    grip = out[_common.ACTION][..., _common.GRASP_ENTRY]
+    assert set(grip.unique().tolist()) <= {0.0, 1.0}
+    logit = out[_common.LOC][..., _common.GRASP_ENTRY]
+    with _common.set_interaction_type(_common.InteractionType.DETERMINISTIC):
+        det = actor(td.clone())[_common.ACTION][..., _common.GRASP_ENTRY]
+    assert torch.equal(det, (logit > 0).float())
+    assert _common.policy_kl(actor, out) == pytest.approx(0.0, abs=1e-6)

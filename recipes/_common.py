@@ -80,7 +80,8 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
     return TransformedEnv(base, Compose(
         # Before StageTransition: a shorter episode limit sets done, which ends the stage.
         StepCounter(max_steps=env_cfg.get("max_episode_steps")),
-        StageTransition(TASKS[task][0](), one_hot_key=STAGE_ONE_HOT),
+        StageTransition(TASKS[task][0](), one_hot_key=STAGE_ONE_HOT,
+                        episode_stage=str(cur_cfg.get("episode_stage", "final"))),
         make_reward_schedule(name, **sched),
     ))
 

@@ -94,6 +94,12 @@ class StageTransition(_ResetKeysMixin, Transform):
     * ``one_hot_key`` (optional): float ``[*B, A, n_stages]``, for the teacher's
       observation.
 
+    ``episode_stage`` picks the stage lambda(e) reported at the episode's end: ``"final"``
+    (default, the stage it ends in) or ``"peak"`` (the highest stage reached in it, kept
+    per slot under ``peak_key`` as state). The paper says "the final stage reached"; with
+    the backward edges S2->S0 and S1->S0 the two readings differ: under ``"final"`` a
+    robot that grasps, drops and re-grasps ends in S0, S1 or S2 by chance.
+
     Place it after any transform that changes ``done`` (e.g. ``StepCounter``).
     ``transform(td)`` outside an env runs one step on a td holding t and ``"next"``.
     """
@@ -107,23 +113,33 @@ class StageTransition(_ResetKeysMixin, Transform):
         one_hot_key: NestedKey | None = None,
         done_key: NestedKey = "done",
         reset_keys: Sequence[NestedKey] | None = None,
+        episode_stage: str = "final",
+        peak_key: NestedKey = ("agents", "stage_peak"),
     ):
-        self.graph = graph
+        if episode_stage not in ("final", "peak"):
+            raise ValueError(f"episode_stage must be 'final' or 'peak', got {episode_stage!r}")
+        self.graph, self.episode_stage = graph, episode_stage
+        self.peak_key = unravel_key(peak_key) if episode_stage == "peak" else None
         self.conditions_key = unravel_key(conditions_key)
         self.stage_key = unravel_key(stage_key)
         self.episode_stage_key = unravel_key(episode_stage_key)
         self.one_hot_key = None if one_hot_key is None else unravel_key(one_hot_key)
         self.done_key = unravel_key(done_key)
         out_keys = [self.stage_key, self.episode_stage_key]
+        if self.peak_key is not None:
+            out_keys.append(self.peak_key)
         if self.one_hot_key is not None:
             out_keys.append(self.one_hot_key)
         super().__init__(in_keys=[self.conditions_key], out_keys=out_keys)
         self._init_reset_keys(reset_keys)
 
     # -- data -------------------------------------------------------------------------
-    def _write(self, td: TensorDictBase, stage: torch.Tensor, final: torch.Tensor) -> None:
+    def _write(self, td: TensorDictBase, stage: torch.Tensor, final: torch.Tensor,
+               peak: torch.Tensor | None = None) -> None:
         td.set(self.stage_key, stage.unsqueeze(-1))
         td.set(self.episode_stage_key, final.unsqueeze(-1))
+        if self.peak_key is not None:
+            td.set(self.peak_key, peak.unsqueeze(-1))
         if self.one_hot_key is not None:
             one_hot = torch.nn.functional.one_hot(stage, self.graph.n_stages)
             td.set(self.one_hot_key, one_hot.to(torch.get_default_dtype()))
@@ -139,7 +155,10 @@ class StageTransition(_ResetKeysMixin, Transform):
         stage = stage.reshape(cond.shape[:-1])
         new = self.graph.next_stage(stage, cond)
         done = _done_per_slot(_get(next_tensordict, self.done_key, "step output"), new.shape)
-        self._write(next_tensordict, new, torch.where(done, new, -1))
+        peak = None
+        if self.peak_key is not None:
+            peak = torch.maximum(_get(tensordict, self.peak_key, "step input").reshape(new.shape), new)
+        self._write(next_tensordict, new, torch.where(done, new if peak is None else peak, -1), peak)
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -156,7 +175,11 @@ class StageTransition(_ResetKeysMixin, Transform):
         stage = torch.zeros(slots, dtype=torch.long, device=device)
         if prev is not None:
             stage = torch.where(reset, stage, prev.reshape(slots))
-        self._write(tensordict_reset, stage, torch.full_like(stage, -1))
+        peak = None
+        if self.peak_key is not None:
+            prev_peak = tensordict.get(self.peak_key, None)
+            peak = stage if prev_peak is None else torch.where(reset, stage, prev_peak.reshape(slots))
+        self._write(tensordict_reset, stage, torch.full_like(stage, -1), peak)
         return tensordict_reset
 
     def _slot_shape_from_spec(self, td: TensorDictBase) -> torch.Size:
@@ -189,6 +212,8 @@ class StageTransition(_ResetKeysMixin, Transform):
                 -1, n - 1, shape=(*slots, 1), dtype=torch.long, device=dev
             ),
         }
+        if self.peak_key is not None:
+            specs[self.peak_key] = Categorical(n, shape=(*slots, 1), dtype=torch.long, device=dev)
         if self.one_hot_key is not None:
             specs[self.one_hot_key] = OneHot(
                 n, shape=(*slots, n), dtype=torch.get_default_dtype(), device=dev
@@ -206,7 +231,10 @@ class StageTransition(_ResetKeysMixin, Transform):
         state = input_spec["full_state_spec"]
         if state is None:
             state = Composite(shape=input_spec.shape, device=input_spec.device)
-        _set_nested(state, self.stage_key, self._new_specs(obs)[self.stage_key], like=obs)
+        new = self._new_specs(obs)
+        for key in (self.stage_key, self.peak_key):
+            if key is not None:
+                _set_nested(state, key, new[key], like=obs)
         input_spec["full_state_spec"] = state
         return input_spec
 

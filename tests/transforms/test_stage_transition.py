@@ -61,6 +61,26 @@ def test_backward_edges_when_conditions_are_lost():
     assert s[1, 6].tolist() == [4, 4]  # one edge per step, no cascade past S4
 
 
+def test_peak_episode_stage_is_the_highest_reached():
+    # Climb for 5 steps, lose every condition, episode ends at step 8: final != peak.
+    reach = torch.tensor([[1, 2], [6, 5], [3, 4]])
+    kw = dict(reach=reach, episode_len=8, lose_after=5)
+    final = TransformedEnv(ToyStageEnv(**kw), StageTransition(pnp_default_stage_graph())).rollout(8)
+    env = TransformedEnv(ToyStageEnv(**kw), StageTransition(pnp_default_stage_graph(), episode_stage="peak"))
+    peak = env.rollout(8, break_when_any_done=False)
+    assert stages(final, ("next", "agents", "episode_stage"))[:, -1].tolist() == [[0, 0], [4, 4], [3, 4]]
+    assert stages(peak, ("next", "agents", "episode_stage"))[:, -1].tolist() == [[1, 2], [5, 5], [3, 4]]
+    # The peak restarts from 0 after the reset; the stage itself is unchanged by the option.
+    assert torch.equal(stages(peak)[:, :8], stages(final)[:, :8])
+    td = env.reset()
+    assert (td["agents", "stage_peak"] == 0).all()
+
+
+def test_unknown_episode_stage_reading_is_named():
+    with pytest.raises(ValueError, match="episode_stage must be 'final' or 'peak', got 'max'"):
+        StageTransition(pnp_default_stage_graph(), episode_stage="max")
+
+
 def test_partial_reset_keeps_other_worlds_stage():
     reach = torch.tensor([[6, 6], [6, 6], [6, 6]])
     r = make_env(reach=reach, episode_len=[2, 5, 5]).rollout(4, break_when_any_done=False)

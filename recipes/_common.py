@@ -240,10 +240,9 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
     spec = env.full_action_spec_unbatched[ACTION]
     obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None  # one instance, shared by actor and critic
     head = NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}")
-    grasp_floor = float(model_cfg.get("grasp_min_scale", 0.0))
-    if grasp_floor > 0:
-        floor = torch.zeros(spec.shape[-1])
-        floor[GRASP_ENTRY] = grasp_floor
+    floor = torch.full((spec.shape[-1],), float(model_cfg.get("min_scale", 0.0)))
+    floor[GRASP_ENTRY] = max(float(floor[GRASP_ENTRY]), float(model_cfg.get("grasp_min_scale", 0.0)))
+    if (floor > 0).any():
         head = ScaleFloor(head, floor)
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
                          head=head)

@@ -207,6 +207,13 @@ def test_grasp_min_scale_floors_only_the_grasp_entry():
     assert torch.all(scale[..., _common.GRASP_ENTRY] == 0.3) and torch.all(scale[..., :7] < 0.3)
 
 
+def test_min_scale_floors_every_entry():
+    cfg = _cfg("train", [*TINY, "model.min_scale=0.2", "model.init_scale=0.01"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    assert torch.all(actor(env.reset())[_common.SCALE] == 0.2)
+
+
 def test_bernoulli_gripper_actions_are_binary_and_deterministic_mode_thresholds():
     cfg = _cfg("train", TINY)
     assert cfg.model.grasp_dist == "bernoulli"

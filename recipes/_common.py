@@ -33,6 +33,7 @@ LOG_PROB = ("agents", "action_log_prob")
 VALUE = ("agents", "state_value")
 LOC, SCALE = ("agents", "loc"), ("agents", "scale")
 EPISODE_STAGE = ("agents", "episode_stage")
+PEAK = ("agents", "stage_peak")  # present under curriculum.episode_stage=peak
 GRASP_ENTRY = 7  # the grasp probability's index in the action (pnp.task.ACTION_NAMES)
 N_STAGES = pnp_default_stage_graph().n_stages  # of the pick-and-place task
 # env.task -> (stage graph, reward-schedule kwargs): what the curriculum needs of a task.
@@ -311,9 +312,17 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     won = nxt["success"].squeeze(-1) & done
     out["completion_time_s"] = seconds(nxt["step_count"].squeeze(-1)[won].float().mean()) if won.any() else math.nan
     one_hot = nxt.get(STAGE_ONE_HOT, None)  # the task's stage count (pick-and-place's if absent)
-    hist = torch.bincount(ended, minlength=N_STAGES if one_hot is None else one_hot.shape[-1]).float()
+    n_stages = N_STAGES if one_hot is None else one_hot.shape[-1]
+    hist = torch.bincount(ended, minlength=n_stages).float()
     for i, h in enumerate(hist):
         out[f"stage_share/S{i}"] = float(h / hist.sum()) if ended.numel() else math.nan
+    if nxt.get(PEAK, None) is not None:
+        # lambda(e) is the peak stage (curriculum.episode_stage=peak): log the final stage too.
+        final = nxt["agents", "stage"][stage >= 0]
+        out["mean_final_stage"] = float(final.float().mean()) if final.numel() else math.nan
+        fh = torch.bincount(final, minlength=n_stages).float()
+        for i, h in enumerate(fh):
+            out[f"final_stage_share/S{i}"] = float(h / fh.sum()) if final.numel() else math.nan
     return out
 
 

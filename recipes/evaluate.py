@@ -53,7 +53,7 @@ FALL = REWARD_TERMS.index("fall")
 CAUSES = ("fall", "diverged", "dropped_box", "timeout")
 
 
-def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, step: int) -> list[dict]:
+def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, peak: torch.Tensor, step: int) -> list[dict]:
     """One record per world in ``worlds`` whose episode ended at this step."""
     cond = nxt["agents", "stage_conditions"][worlds]
     box_goal = (nxt["agents", "object"][worlds, 0, :2] - nxt["agents", "goal"][worlds, 0, :2]).norm(dim=-1)
@@ -69,7 +69,8 @@ def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, step: int) -> 
                      "dropped_box": bool(dropped[i])}
             cause = next((c for c in CAUSES[:-1] if flags[c]), "timeout")
         rows.append({"world": w, "end_step": step, "success": bool(success[i]), "cause": cause,
-                     "steps": int(nxt["step_count"][w, 0]), "end_stage": int(nxt["agents", "episode_stage"][w].max())})
+                     "steps": int(nxt["step_count"][w, 0]), "end_stage": int(nxt["agents", "stage"][w].max()),
+                     "peak_stage": int(peak[w])})
     return rows
 
 
@@ -79,6 +80,7 @@ def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
     per_world = math.ceil(trials / n_worlds)
     count = torch.zeros(n_worlds, dtype=torch.long)
     lifted = torch.zeros(n_worlds, dtype=torch.bool)
+    peak = torch.zeros(n_worlds, dtype=torch.long)  # highest stage of any robot in the episode
     records, step = [], 0
     bar = tqdm(total=trials, disable=not progress, desc="trials")
     td = env.reset()
@@ -88,13 +90,15 @@ def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
             out, td = env.step_and_maybe_reset(td)
             nxt, step = out["next"], step + 1
             lifted |= nxt["agents", "stage_conditions"][..., LIFTED].any(-1)
+            peak = torch.maximum(peak, nxt["agents", "stage"].reshape(n_worlds, -1).max(-1).values)
             done = nxt["done"].view(n_worlds)
             worlds = (done & (count < per_world)).nonzero().view(-1)
             if len(worlds):
-                records += _end_records(nxt, worlds, lifted, step)
+                records += _end_records(nxt, worlds, lifted, peak, step)
                 count[worlds] += 1
                 bar.update(min(len(worlds), max(0, trials - bar.n)))
             lifted &= ~done
+            peak[done] = 0
     bar.close()
     records.sort(key=lambda r: (r["end_step"], r["world"]))
     return records[:trials]
@@ -103,6 +107,7 @@ def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
 def summarise(records: list[dict]) -> dict:
     times = np.array([seconds(r["steps"]) for r in records if r["success"]])
     stages = np.bincount([r["end_stage"] for r in records], minlength=N_STAGES)
+    peaks = np.bincount([r["peak_stage"] for r in records], minlength=N_STAGES)
     return {
         "trials": len(records),
         "success_rate": float(np.mean([r["success"] for r in records])) if records else math.nan,
@@ -111,6 +116,7 @@ def summarise(records: list[dict]) -> dict:
         "failure_causes": {c: sum(r["cause"] == c for r in records) for c in CAUSES},
         "mean_end_stage": float(np.mean([r["end_stage"] for r in records])) if records else math.nan,
         "end_stage_counts": {f"S{i}": int(c) for i, c in enumerate(stages)},
+        "peak_stage_counts": {f"S{i}": int(c) for i, c in enumerate(peaks)},
     }
 
 

@@ -42,7 +42,12 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
     fig, ax = plt.subplots(figsize=(6, 3.5))
     stage = _series(rows, "mean_end_stage")
     ok = np.isfinite(stage)  # iterations where no episode ended have no value
-    ax.plot(it[ok], stage[ok])
+    final = _series(rows, "mean_final_stage")
+    peak = np.isfinite(final).any()  # lambda(e) is the peak stage: show the final stage beside it
+    ax.plot(it[ok], stage[ok], label="highest stage reached (lambda)" if peak else None)
+    if peak:
+        ax.plot(it[ok], final[ok], "--", label="final stage")
+        ax.legend(fontsize=8)
     ax.set(xlabel="iteration", ylabel="mean end-of-episode stage", ylim=(0, max(len(shares), 2) - 0.8))
     ax.grid(alpha=0.3)
     written.append(_save(fig, out_dir / "mean_end_stage.png"))
@@ -52,7 +57,8 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ys = np.stack([_series(rows, k) for k in shares])
         ok = np.isfinite(ys).all(0)
         ax.stackplot(it[ok], ys[:, ok], labels=[k.split("/")[-1] for k in shares])
-        ax.set(xlabel="iteration", ylabel="share of episodes ending in stage", ylim=(0, 1))
+        ylabel = "share of episodes by highest stage" if peak else "share of episodes ending in stage"
+        ax.set(xlabel="iteration", ylabel=ylabel, ylim=(0, 1))
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
         written.append(_save(fig, out_dir / "stage_shares.png"))
 

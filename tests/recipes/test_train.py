@@ -139,11 +139,11 @@ def _ended(success=False, fell=False, terminated=False, grabbed=False, box_goal=
     obj, goal = torch.zeros(1, 1, 30), torch.zeros(1, 1, 3)
     obj[..., 0] = box_goal
     agents = TensorDict({"stage_conditions": cond, "reward_terms": terms, "object": obj, "goal": goal,
-                         "episode_stage": torch.full((1, 1, 1), 3)}, batch_size=(1, 1))
+                         "stage": torch.full((1, 1, 1), 3)}, batch_size=(1, 1))
     flag = lambda v: torch.full((1, 1), v)  # noqa: E731
     nxt = TensorDict({"agents": agents, "success": flag(success), "terminated": flag(terminated or fell),
                       "diverged": flag(False), "step_count": torch.full((1, 1), 450)}, batch_size=(1,))
-    return evaluate_recipe._end_records(nxt, torch.tensor([0]), torch.tensor([lifted]), step=450)[0]
+    return evaluate_recipe._end_records(nxt, torch.tensor([0]), torch.tensor([lifted]), torch.tensor([3]), step=450)[0]
 
 
 @pytest.mark.parametrize("kwargs, cause", [
@@ -229,3 +229,11 @@ def test_bernoulli_gripper_actions_are_binary_and_deterministic_mode_thresholds(
         det = actor(td.clone())[_common.ACTION][..., _common.GRASP_ENTRY]
     assert torch.equal(det, (logit > 0).float())
     assert _common.policy_kl(actor, out) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_peak_reading_logs_the_final_stage_too(tmp_path):
+    _train(tmp_path / "run", "total_iterations=2", "curriculum.episode_stage=peak")
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    ended = [r for r in rows if r["episodes"] > 0]
+    assert ended and all(r["mean_final_stage"] <= r["mean_end_stage"] for r in ended)
+    assert all(abs(sum(r[f"final_stage_share/S{i}"] for i in range(7)) - 1) < 1e-6 for r in ended)

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    N_STAGES, load_checkpoint, make_env, make_models, resolve_checkpoint, seconds, seed_everything,
+    N_STAGES, ObsNorm, fold_constant_inputs, load_checkpoint, make_env, make_models, resolve_checkpoint, seconds, seed_everything,
 )
 from _provenance import provenance  # noqa: E402
 
@@ -154,6 +154,13 @@ def evaluate(cfg: DictConfig) -> dict:
     env = make_env(env_cfg, tcfg.curriculum, int(cfg.seed))
     actor, *_ = make_models(tcfg.model, env, tcfg.loss.value_norm, float(tcfg.loss.popart_beta))
     actor.load_state_dict(ckpt["actor"])
+    folded = []
+    net = actor.module[0].module
+    if env_cfg.backend != tcfg.env.backend and isinstance(net.obs_norm, ObsNorm):
+        # Inputs constant on the training backend (the kinematic one has no wrist roll, box
+        # tilt or tilt rates) move here; their untrained first-layer weights would scramble
+        # the policy. Folding keeps its function on the training data and blinds it to them.
+        folded = fold_constant_inputs(net.obs_norm, [net])
     records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
     env.close()
     result = {
@@ -164,7 +171,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "checkpoint_iteration": int(ckpt["counters"]["iteration"]), "checkpoint_frames": int(ckpt["counters"]["frames"]),
         # This run's training (a warm-started run's source trained before: see warm_started_from).
         "env_steps": int(ckpt["counters"]["frames"]), "train_wall_s": float(ckpt["counters"]["wall_s"]),
-        "warm_started_from": tcfg.get("warm_start"),
+        "warm_started_from": tcfg.get("warm_start"), "trained_backend": tcfg.env.backend,
+        "folded_inputs": folded,
         "schedule": tcfg.curriculum.schedule if tcfg.curriculum.stage_rewards else "none",
         "wall_s": time.monotonic() - t0, **provenance(),
     }

@@ -9,8 +9,15 @@ Keys (multi-agent group ``"agents"``, A robots):
   ("agents", "stage_conditions")  [N, A, 6]  forward condition of each stage edge
   ("agents", "reward")            [N, A, 1]  default reward: terms at mu_j, no curriculum
   ("agents", "action_clipped")    [N, A]     the action was out of bounds and clipped
-  "success", "diverged"           [N, 1]     episode succeeded / physics diverged and reset
-  "done", "terminated", "truncated" [N, 1]   success or fall / 45 s or divergence
+  "success", "diverged"           [N, 1]     episode has succeeded / physics diverged and reset
+  "success_step"                  [N, 1]     step of the first success, -1 before it
+  "done", "terminated", "truncated" [N, 1]   success (if ``terminate_on_success``) or fall /
+                                              45 s or divergence
+
+``terminate_on_success=False`` keeps an episode running after the box is released in the
+goal, so the S6 terms of Table II (released in goal, stage progress, arm in default pose)
+pay for staying there; with termination they would pay for one step, and every positive
+per-step reward the policy still collects in S5 would argue against releasing.
 
 The grasp entry is a probability p; the gripper gets a binary command (paper: "a binary
 command for the gripper"): ``grasp_sampling="threshold"`` closes when p > 0.5 (evaluation,
@@ -96,9 +103,13 @@ class RobotEnvBase(EnvBase):
         out = self._observe(self._last_action, self._last_action)
         zeros = torch.zeros(self.num_worlds, 1, dtype=torch.bool)
         out.update({"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone(),
-                    "success": zeros.clone(), "diverged": zeros.clone()})
+                    "success": zeros.clone(), "diverged": zeros.clone(), **self._reset_extras()})
         out.del_(("agents", "reward"))
         return out
+
+    def _reset_extras(self) -> dict:
+        """Task-specific entries of the reset output."""
+        return {}
 
     def _check_action(self, action: torch.Tensor):
         expected = (self.num_worlds, self.num_robots, 8)
@@ -147,14 +158,15 @@ class PnPEnv(RobotEnvBase):
 
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
-                 start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold", device="cpu"):
+                 start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
+                 terminate_on_success: bool = True, device="cpu"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
         if grasp_sampling not in ("threshold", "bernoulli"):
             raise ValueError(f"grasp_sampling must be 'threshold' or 'bernoulli', got {grasp_sampling!r}")
-        self.grasp_sampling = grasp_sampling
+        self.grasp_sampling, self.terminate_on_success = grasp_sampling, bool(terminate_on_success)
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
@@ -168,6 +180,7 @@ class PnPEnv(RobotEnvBase):
         self._last_action = self._neutral_action().expand(N, R, 8).clone()
         self._steps = torch.zeros(N, dtype=torch.long)
         self._was_lifted = torch.zeros(N, dtype=torch.bool)
+        self._success_step = torch.full((N,), -1, dtype=torch.long)
         self.clipped_count = 0  # (world, robot) actions clipped since construction
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
@@ -186,7 +199,9 @@ class PnPEnv(RobotEnvBase):
         obs["stage_conditions"] = Binary(n=len(CONDITIONS), shape=(R, len(CONDITIONS)), dtype=torch.bool)
         obs["action_clipped"] = Categorical(2, shape=(R,), dtype=torch.bool)
         flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool)  # noqa: E731
-        self.full_observation_spec_unbatched = Composite({"agents": agents(obs), "success": flag(), "diverged": flag()})
+        self.full_observation_spec_unbatched = Composite({
+            "agents": agents(obs), "success": flag(), "diverged": flag(),
+            "success_step": Unbounded(shape=(1,), dtype=torch.long)})
         self.full_reward_spec_unbatched = Composite({"agents": agents({"reward": Unbounded(shape=(R, 1))})})
         self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
 
@@ -205,6 +220,7 @@ class PnPEnv(RobotEnvBase):
         self._last_action[ids] = self._neutral_action()
         self._steps[ids] = 0
         self._was_lifted[ids] = False
+        self._success_step[ids] = -1
 
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -230,13 +246,16 @@ class PnPEnv(RobotEnvBase):
         self._last_action = action
         cond = out.get(("agents", "stage_conditions"))
         self._was_lifted |= (cond[..., 2]).any(-1)
-        success = self._was_lifted & cond[..., 5].all(-1)
+        now = self._was_lifted & cond[..., 5].all(-1)
+        self._success_step = torch.where(now & (self._success_step < 0), self._steps, self._success_step)
+        success = self._success_step >= 0
         fell = out.get(("agents", "reward_terms"))[..., REWARD_TERMS.index("fall")].bool().any(-1)
-        terminated = (success | fell).unsqueeze(-1)
+        terminated = ((success & self.terminate_on_success) | fell).unsqueeze(-1)
         truncated = ((self._steps >= self.max_steps) | diverged).unsqueeze(-1)
         out.set(("agents", "action_clipped"), clipped)
         out.update({"terminated": terminated, "truncated": truncated & ~terminated, "done": terminated | truncated,
-                    "success": success.unsqueeze(-1), "diverged": diverged.unsqueeze(-1)})
+                    "success": success.unsqueeze(-1), "diverged": diverged.unsqueeze(-1),
+                    "success_step": self._success_step.unsqueeze(-1).clone()})
         return out
 
     def _observe(self, action, last_action, closed=None) -> TensorDict:
@@ -255,8 +274,11 @@ class PnPEnv(RobotEnvBase):
         return TensorDict({"agents": TensorDict(agents, batch_size=(self.num_worlds, self.num_robots))},
                           batch_size=(self.num_worlds,))
 
+    def _reset_extras(self) -> dict:
+        return {"success_step": self._success_step.unsqueeze(-1).clone()}
+
     # --- extras ------------------------------------------------------------------------------
-    _STATE = ("_goal", "_init_goal_dist", "_last_action", "_steps", "_was_lifted")
+    _STATE = ("_goal", "_init_goal_dist", "_last_action", "_steps", "_was_lifted", "_success_step")
 
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""

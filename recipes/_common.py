@@ -71,7 +71,8 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
         base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
                       backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"),
                       start_range=tuple(env_cfg.get("start_range") or START_RANGE),
-                      grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")))
+                      grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),
+                      terminate_on_success=bool(env_cfg.get("terminate_on_success", True)))
     else:
         if int(env_cfg.num_robots) != 1:
             raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
@@ -310,7 +311,9 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     out["success_rate"] = float(nxt["success"].squeeze(-1)[done].float().mean()) if n else math.nan
     out["mean_end_stage"] = float(ended.float().mean()) if ended.numel() else math.nan
     won = nxt["success"].squeeze(-1) & done
-    out["completion_time_s"] = seconds(nxt["step_count"].squeeze(-1)[won].float().mean()) if won.any() else math.nan
+    # Episodes that go on after success (env.terminate_on_success=false) record its step.
+    steps = nxt["success_step"] if "success_step" in nxt.keys() else nxt["step_count"]
+    out["completion_time_s"] = seconds(steps.squeeze(-1)[won].float().mean()) if won.any() else math.nan
     one_hot = nxt.get(STAGE_ONE_HOT, None)  # the task's stage count (pick-and-place's if absent)
     n_stages = N_STAGES if one_hot is None else one_hot.shape[-1]
     hist = torch.bincount(ended, minlength=n_stages).float()

@@ -149,6 +149,7 @@ def evaluate(cfg: DictConfig) -> dict:
     # The paper's layouts unless asked otherwise: a policy trained on near starts is judged on all.
     env_cfg.start_range = list(cfg.env.get("start_range") or START_RANGE)
     env_cfg.grasp_sampling = "threshold"  # the deterministic policy's gripper command
+    env_cfg.terminate_on_success = True  # a trial ends at its success (completion time)
     t0 = time.monotonic()
     seed_everything(int(cfg.seed))
     env = make_env(env_cfg, tcfg.curriculum, int(cfg.seed))

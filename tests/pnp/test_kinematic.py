@@ -364,3 +364,22 @@ def test_two_scripted_robots_split_the_handles_and_deliver_the_box():
             break
     assert (pol.handle.sum(-1) == 1).all()  # one handle each
     assert success.all()
+
+
+def test_episode_goes_on_after_success_without_termination():
+    n = 8
+    env = PnPEnv(num_worlds=n, num_robots=1, backend="kinematic", seed=0, terminate_on_success=False)
+    pol = ScriptedPnP(n)
+    td = env.reset()
+    assert (td["success_step"] == -1).all()
+    first = torch.full((n,), -1, dtype=torch.long)
+    for t in range(env.max_steps):
+        td = env.step(pol(td))
+        nxt = td["next"]
+        assert not nxt["terminated"].any()  # nobody falls in the scripted run; success does not end it
+        now = nxt["success"].squeeze(-1)
+        assert (now | (first < 0)).all()  # success is sticky
+        first = torch.where(now & (first < 0), torch.full_like(first, t + 1), first)
+        td = env.step_mdp(td)
+    assert (first > 0).sum() >= 6
+    assert torch.equal(td["success_step"].squeeze(-1), first)  # the step it first held

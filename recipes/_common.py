@@ -312,8 +312,10 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     out["mean_end_stage"] = float(ended.float().mean()) if ended.numel() else math.nan
     won = nxt["success"].squeeze(-1) & done
     # Episodes that go on after success (env.terminate_on_success=false) record its step.
-    steps = nxt["success_step"] if "success_step" in nxt.keys() else nxt["step_count"]
-    out["completion_time_s"] = seconds(steps.squeeze(-1)[won].float().mean()) if won.any() else math.nan
+    out["completion_time_s"] = math.nan
+    if won.any():
+        steps = nxt["success_step"] if "success_step" in nxt.keys() else nxt["step_count"]
+        out["completion_time_s"] = seconds(steps.squeeze(-1)[won].float().mean())
     one_hot = nxt.get(STAGE_ONE_HOT, None)  # the task's stage count (pick-and-place's if absent)
     n_stages = N_STAGES if one_hot is None else one_hot.shape[-1]
     hist = torch.bincount(ended, minlength=n_stages).float()

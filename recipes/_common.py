@@ -17,7 +17,7 @@ from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, 
 from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
-from pnp.distributions import TanhNormalGripper
+from pnp.losses.distributions import TanhNormalGripper
 from pnp.ee_task import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.pnp_env import PnPEnv

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import distributions as D
 
-from pnp.distributions import TanhNormalGripper
+from pnp.losses.distributions import TanhNormalGripper
 
 LOW = torch.tensor([-1.0] * 7 + [0.0])
 HIGH = torch.tensor([2.0] * 7 + [1.0])

@@ -11,7 +11,7 @@ Why not a continuous probability p that the environment thresholds or samples: w
 threshold, exploration closes the gripper only where the Gaussian noise crosses it; with
 environment-side sampling the advantage is driven by a coin flip PPO never sees, and the
 gradient on p comes only through p's own small noise. We measured the latter: a policy
-trained 790 iterations that way held its grasp with p = 0.22 (median 0.20) and opened on
+trained 786 iterations that way held its grasp with p = 0.22 (median 0.20) and opened on
 76 % of its grabbed steps (``results/train_kin_single_near``).
 """
 from __future__ import annotations

@@ -114,7 +114,8 @@ def test_plots_standalone(tmp_path):
 def test_evaluate_counts_scripted_successes():
     """The scripted policy succeeds on the kinematic backend: trials, successes and times add up."""
     env = _common.make_env(
-        _cfg("train", ["env.backend=kinematic", "env.num_worlds=4", "env.max_episode_steps=null"]).env,
+        _cfg("train", ["env.backend=kinematic", "env.num_worlds=4", "env.max_episode_steps=null",
+                       "env.terminate_on_success=true"]).env,  # as evaluate.py sets it
         _cfg("train", []).curriculum, seed=5)
     script = ScriptedPnP(4, 1)
 

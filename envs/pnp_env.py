@@ -20,9 +20,10 @@ pay for staying there; with termination they would pay for one step, and every p
 per-step reward the policy still collects in S5 would argue against releasing.
 
 The grasp entry is a probability p; the gripper gets a binary command (paper: "a binary
-command for the gripper"): ``grasp_sampling="threshold"`` closes when p > 0.5 (evaluation,
-scripted policies), ``"bernoulli"`` closes with probability p (training: a policy sure to
-keep the gripper open still closes now and then, which is how grasps are first found).
+command for the gripper"): ``grasp_sampling="threshold"`` closes when p > 0.5 (default;
+the recipes' Bernoulli policy already emits 0 or 1, see ``pnp.losses.distributions``),
+``"bernoulli"`` closes with probability p (for a policy that outputs p itself; PPO then
+never sees the coin flip, which we measured to stall learning to hold a grasp).
 """
 from __future__ import annotations
 

@@ -140,7 +140,7 @@ def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int
     n_obs = obs_norm.mean.numel()
     for net in nets:
         w, b = net.mlp.params["0", "weight"], net.mlp.params["0", "bias"]
-        per_agent = w.shape[-1] // net.mlp.n_agents if net.mlp.centralized else w.shape[-1]
+        per_agent = w.shape[-1] // net.n_agents if net.centralised else w.shape[-1]
         for start in range(0, w.shape[-1], per_agent):  # [obs | stage] per agent when centralised
             cols = start + idx
             b += w[..., cols] @ const.to(w)
@@ -150,18 +150,30 @@ def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int
 
 
 class AgentNet(nn.Module):
-    """A MultiAgentMLP over [normalised observation | stage one-hot]: the teacher sees its stage."""
+    """An MLP with shared parameters over [normalised observation | stage one-hot] per agent:
+    the teacher sees its stage.
+
+    ``centralised``: agent i's input is its own block followed by the others' (in order
+    i+1, i+2, ...), so every agent's output depends on all inputs but stays its own. Why
+    not MultiAgentMLP(centralized=True, share_params=True): it gives all agents one shared
+    value, while each robot here has its own stage and reward.
+    """
 
     def __init__(self, n_in: int, n_out: int, n_agents: int, centralised: bool, cells, head: nn.Module | None = None,
                  obs_norm: ObsNorm | None = None):
         super().__init__()
+        self.n_agents, self.centralised = n_agents, centralised and n_agents > 1
         self.obs_norm = obs_norm if obs_norm is not None else nn.Identity()
-        self.mlp = MultiAgentMLP(n_agent_inputs=n_in, n_agent_outputs=n_out, n_agents=n_agents, centralized=centralised,
+        width = n_in * n_agents if self.centralised else n_in
+        self.mlp = MultiAgentMLP(n_agent_inputs=width, n_agent_outputs=n_out, n_agents=n_agents, centralized=False,
                                  share_params=True, num_cells=list(cells), activation_class=nn.Tanh)
         self.head = head if head is not None else nn.Identity()
 
     def forward(self, obs: torch.Tensor, stage: torch.Tensor):
-        return self.head(self.mlp(torch.cat([self.obs_norm(obs), stage], -1)))
+        x = torch.cat([self.obs_norm(obs), stage], -1)
+        if self.centralised:  # [N, A, k] -> [N, A, A*k]: own block first
+            x = torch.cat([x.roll(-k, dims=-2) for k in range(self.n_agents)], -1)
+        return self.head(self.mlp(x))
 
 
 class ScaleFloor(nn.Module):

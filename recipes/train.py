@@ -37,6 +37,7 @@ from _common import (  # noqa: E402
     resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
 )
 from plots import plot_training  # noqa: E402
+from _warm_start import adapt_curriculum, load_module, load_optimiser  # noqa: E402
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
 RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress")
@@ -163,16 +164,19 @@ def train(cfg: DictConfig) -> dict:
         _truncate_metrics(metrics_path, 0)  # a reused folder starts a fresh log
         if cfg.warm_start:
             init = load_checkpoint(resolve_checkpoint(cfg.warm_start, cfg.runs_root))
-            actor.load_state_dict(init["actor"])
-            critic.load_state_dict(init["critic"])
+            load_module(actor, init["actor"])
+            widened = load_module(critic, init["critic"])  # a single-robot critic into the dual task
+            if widened:
+                print(f"warm start: widened {widened} with zero weights on the neighbour's inputs")
             # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
             # (entropy -19) policy to KL 74 in its first iteration (measured).
-            optim.load_state_dict(init["optim"])
+            load_optimiser(optim, init["optim"])
             if obs_norm is not None and cfg.get("warm_start_fold_constant"):
                 folded = fold_constant_inputs(obs_norm, [actor.module[0].module, critic.module])
                 print(f"warm start: folded constant observation entries {folded}")
             if cfg.get("warm_start_curriculum"):  # rho_j as they were: no reward-scale shock
-                env.transform.load_state_dict(init["curriculum"])
+                base = env.base_env
+                env.transform.load_state_dict(adapt_curriculum(init["curriculum"], base.num_worlds, base.num_robots))
         carried = env.reset()
         if obs_norm is not None and not cfg.warm_start:
             obs_norm.update(carried[OBS])  # first statistics from the initial layouts

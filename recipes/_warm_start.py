@@ -1,0 +1,61 @@
+"""Warm starts across set-ups: a single-robot policy into the dual-robot task, a curriculum
+state into a different number of worlds.
+
+The actor (decentralised, shared parameters) has the same shapes for one or two robots.
+The dual critic's first layer sees [own block | neighbour's block]; a single-robot
+critic is widened with zero weights on the neighbour's block, so it starts out predicting
+what it predicted alone.
+"""
+from __future__ import annotations
+
+import torch
+
+_FIRST = "mlp.params.0.weight"
+
+
+def _widen(old: torch.Tensor, shape: torch.Size, key: str) -> torch.Tensor:
+    if old.shape == shape:
+        return old
+    if not key.endswith(_FIRST) or old.shape[:-1] != shape[:-1] or shape[-1] % old.shape[-1]:
+        raise ValueError(f"warm start: {key} has shape {tuple(old.shape)} in the checkpoint and {tuple(shape)} here; "
+                         "only the critic's first layer may widen (single -> dual robots)")
+    new = old.new_zeros(shape)
+    new[..., : old.shape[-1]] = old
+    return new
+
+
+def load_module(module: torch.nn.Module, state: dict) -> list[str]:
+    """``module.load_state_dict(state)`` with first layers widened; returns the widened keys."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    if missing:
+        raise KeyError(f"warm start: the checkpoint lacks {missing}")
+    widened = [k for k in own if own[k].shape != state[k].shape]
+    module.load_state_dict({k: _widen(state[k], own[k].shape, k) for k in own})
+    return widened
+
+
+def load_optimiser(optim: torch.optim.Optimizer, state: dict) -> None:
+    """Adam's moments and lr; moments of a widened parameter are zero-padded like it."""
+    optim.load_state_dict(state)
+    for group in optim.param_groups:
+        for p in group["params"]:
+            for name, v in optim.state.get(p, {}).items():
+                if torch.is_tensor(v) and v.dim() and v.shape != p.shape:
+                    optim.state[p][name] = _widen(v, p.shape, _FIRST)
+
+
+def adapt_curriculum(state: dict, num_worlds: int, num_robots: int) -> dict:
+    """Per-world curriculum tensors ([N, A, ...]) resized to ``num_worlds`` (rows reused
+    cyclically) and, from one robot, repeated for each of ``num_robots``."""
+    out = {}
+    for k, v in state.items():
+        if v.dim() >= 2:
+            v = v[torch.arange(num_worlds) % v.shape[0]]
+            if v.shape[1] != num_robots:
+                if v.shape[1] != 1:
+                    raise ValueError(f"warm start: curriculum {k} has {v.shape[1]} robots, this run {num_robots}")
+                v = v.expand(num_worlds, num_robots, *v.shape[2:])
+            v = v.clone()
+        out[k] = v
+    return out

@@ -135,24 +135,25 @@ def table_md(result: dict, method: str) -> str:
     )
 
 
-def evaluate(cfg: DictConfig) -> dict:
-    ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+def load_policy(ckpt_path: Path, eval_env: DictConfig, num_worlds: int, seed: int):
+    """The checkpoint's actor in an evaluation env (terminates at success, gripper by
+    threshold, the paper's layouts unless ``eval_env.start_range``):
+    ``(env, actor, ckpt, env_cfg, folded)``."""
     ckpt = load_checkpoint(ckpt_path)
     tcfg = OmegaConf.create(ckpt["cfg"])
     if tcfg.env.get("task", "pnp") != "pnp":
         raise ValueError(f"{ckpt_path} was trained on env.task={tcfg.env.task!r}; this recipe evaluates pnp "
                          "(the EE-tracking ablation evaluates in recipes/ablation_ee.py)")
     env_cfg = tcfg.env.copy()
-    env_cfg.backend = cfg.env.backend or tcfg.env.backend
-    env_cfg.num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    env_cfg.nthread, env_cfg.max_episode_steps = cfg.env.nthread, cfg.env.max_episode_steps
+    env_cfg.backend = eval_env.backend or tcfg.env.backend
+    env_cfg.num_worlds = num_worlds
+    env_cfg.nthread, env_cfg.max_episode_steps = eval_env.nthread, eval_env.max_episode_steps
     # The paper's layouts unless asked otherwise: a policy trained on near starts is judged on all.
-    env_cfg.start_range = list(cfg.env.get("start_range") or START_RANGE)
+    env_cfg.start_range = list(eval_env.get("start_range") or START_RANGE)
     env_cfg.grasp_sampling = "threshold"  # the deterministic policy's gripper command
     env_cfg.terminate_on_success = True  # a trial ends at its success (completion time)
-    t0 = time.monotonic()
-    seed_everything(int(cfg.seed))
-    env = make_env(env_cfg, tcfg.curriculum, int(cfg.seed))
+    seed_everything(seed)
+    env = make_env(env_cfg, tcfg.curriculum, seed)
     actor, *_ = make_models(tcfg.model, env, tcfg.loss.value_norm, float(tcfg.loss.popart_beta))
     actor.load_state_dict(ckpt["actor"])
     folded = []
@@ -162,6 +163,15 @@ def evaluate(cfg: DictConfig) -> dict:
         # tilt or tilt rates) move here; their untrained first-layer weights would scramble
         # the policy. Folding keeps its function on the training data and blinds it to them.
         folded = fold_constant_inputs(net.obs_norm, [net])
+    return env, actor, ckpt, env_cfg, folded
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+    t0 = time.monotonic()
+    env, actor, ckpt, env_cfg, folded = load_policy(ckpt_path, cfg.env, min(int(cfg.env.num_worlds), int(cfg.trials)),
+                                                    int(cfg.seed))
+    tcfg = OmegaConf.create(ckpt["cfg"])
     records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
     env.close()
     result = {

@@ -3,6 +3,11 @@
     python recipes/render.py                                  # scripted policy, one robot
     python recipes/render.py --out results/scripted_pnp.gif --seed 3 --every 2
     python recipes/render.py --robots 2 --out results/scripted_dual_pnp.gif --every 3
+    python recipes/render.py --checkpoint results/train_single/checkpoint_mujoco.pt --out results/single_pnp.gif
+
+With ``--checkpoint`` the trained teacher acts with its deterministic (mean) action on the
+MuJoCo backend (the robot count is the checkpoint's); ``--tries`` seeds are rendered in
+turn until one succeeds, and the JSON says how many it took.
 
 Needs Debian's ``libegl1 libegl-mesa0 libgl1-mesa-dri`` (``make render-deps``).
 """
@@ -27,13 +32,15 @@ from pnp.render import WorldRenderer  # noqa: E402
 from pnp.scripted import ScriptedPnP  # noqa: E402
 
 
-def render_episode(env: PnPEnv, policy, out: str, every: int = 2, width: int = 320, height: int = 240,
+def render_episode(env, policy, out: str, every: int = 2, width: int = 320, height: int = 240,
                    max_steps: int | None = None) -> dict:
-    """Roll out world 0 until its episode ends; write every ``every``-th frame."""
-    r = WorldRenderer(env.backend, 0, width=width, height=height)
+    """Roll out world 0 of ``env`` (a PnPEnv, or a TransformedEnv around one) until its
+    episode ends; write every ``every``-th frame."""
+    base = getattr(env, "base_env", env)
+    r = WorldRenderer(base.backend, 0, width=width, height=height)
     td = env.reset()
     frames, steps, success = [r.frame()], 0, False
-    for steps in range(1, (max_steps or env.max_steps) + 1):
+    for steps in range(1, (max_steps or base.max_steps) + 1):
         td = env.step(policy(td))
         nxt = td["next"]
         if steps % every == 0:
@@ -58,17 +65,45 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--every", type=int, default=2, help="keep every n-th HL step (10 Hz)")
     p.add_argument("--out", default="results/scripted_pnp.gif")
+    p.add_argument("--checkpoint", default=None, help="a trained teacher (run folder or .pt); default: scripted")
+    p.add_argument("--tries", type=int, default=10, help="with --checkpoint: seeds tried until a success")
     args = p.parse_args(argv)
     if args.robots not in (1, 2):
         raise SystemExit(f"--robots must be 1 or 2, got {args.robots}")
     t0 = time.time()
-    torch.manual_seed(args.seed)
-    env = PnPEnv(num_worlds=1, num_robots=args.robots, seed=args.seed)
-    info = render_episode(env, ScriptedPnP(1, args.robots), args.out, every=args.every)
-    info.update(provenance(seed=args.seed, wall_s=round(time.time() - t0, 1), policy="scripted"))
+    if args.checkpoint:
+        info = _render_teacher(args)
+    else:
+        torch.manual_seed(args.seed)
+        env = PnPEnv(num_worlds=1, num_robots=args.robots, seed=args.seed)
+        info = render_episode(env, ScriptedPnP(1, args.robots), args.out, every=args.every)
+        info.update(provenance(seed=args.seed, policy="scripted"))
+    info["wall_s"] = round(time.time() - t0, 1)
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
         json.dump(info, f, indent=2)
     print(info)
+    return info
+
+
+def _render_teacher(args) -> dict:
+    from omegaconf import OmegaConf
+    from tensordict.nn import InteractionType, set_interaction_type
+
+    from _common import resolve_checkpoint
+    from evaluate import load_policy
+
+    path = resolve_checkpoint(args.checkpoint, "runs")
+    eval_env = OmegaConf.create({"backend": "mujoco", "nthread": 1, "max_episode_steps": None, "start_range": None})
+    for k in range(args.tries):
+        seed = args.seed + k
+        env, actor, ckpt, _, folded = load_policy(path, eval_env, 1, seed)
+        with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+            info = render_episode(env, actor, args.out, every=args.every)
+        env.close()
+        if info["success"]:
+            break
+    info.update(provenance(seed=seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
+                           seeds_tried=k + 1, folded_inputs=folded))
     return info
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import distributions as D
 
-from pnp.losses.distributions import TanhNormalGripper
+from pnp.losses.distributions import TanhNormalGripper, bernoulli_kl
 
 LOW = torch.tensor([-1.0] * 7 + [0.0])
 HIGH = torch.tensor([2.0] * 7 + [1.0])
@@ -57,3 +57,13 @@ def test_entropy_has_the_bernoulli_part_and_a_gradient():
     assert e.shape == (4,) and torch.isfinite(e).all()
     e.sum().backward()
     assert loc.grad is not None
+
+
+def test_bernoulli_kl_matches_torch_and_stays_finite_when_sharp():
+    lp, lq = torch.tensor([-3.0, 0.5, 2.0]), torch.tensor([1.0, -0.5, 2.5])
+    torch.testing.assert_close(bernoulli_kl(lp, lq), D.kl_divergence(D.Bernoulli(logits=lp), D.Bernoulli(logits=lq)))
+    sharp_p, sharp_q = torch.tensor([15.0, -40.0, 25.0]), torch.tensor([20.0, -20.0, 20.0])
+    assert torch.isinf(D.kl_divergence(D.Bernoulli(logits=sharp_p), D.Bernoulli(logits=sharp_q))).any()  # why
+    kl = bernoulli_kl(sharp_p, sharp_q)
+    assert torch.isfinite(kl).all() and (kl >= 0).all() and kl[2] > 0
+    assert bernoulli_kl(sharp_p, sharp_p).abs().max() < 1e-6

@@ -67,6 +67,7 @@ def main(argv=None):
     p.add_argument("--out", default="results/scripted_pnp.gif")
     p.add_argument("--checkpoint", default=None, help="a trained teacher (run folder or .pt); default: scripted")
     p.add_argument("--tries", type=int, default=10, help="with --checkpoint: seeds tried until a success")
+    p.add_argument("--max-steps", type=int, default=None, help="cut the episode short (default: 45 s)")
     args = p.parse_args(argv)
     if args.robots not in (1, 2):
         raise SystemExit(f"--robots must be 1 or 2, got {args.robots}")
@@ -76,7 +77,7 @@ def main(argv=None):
     else:
         torch.manual_seed(args.seed)
         env = PnPEnv(num_worlds=1, num_robots=args.robots, seed=args.seed)
-        info = render_episode(env, ScriptedPnP(1, args.robots), args.out, every=args.every)
+        info = render_episode(env, ScriptedPnP(1, args.robots), args.out, every=args.every, max_steps=args.max_steps)
         info.update(provenance(seed=args.seed, policy="scripted"))
     info["wall_s"] = round(time.time() - t0, 1)
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
@@ -98,7 +99,7 @@ def _render_teacher(args) -> dict:
         seed = args.seed + k
         env, actor, ckpt, _, folded = load_policy(path, eval_env, 1, seed)
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
-            info = render_episode(env, actor, args.out, every=args.every)
+            info = render_episode(env, actor, args.out, every=args.every, max_steps=args.max_steps)
         env.close()
         if info["success"]:
             break

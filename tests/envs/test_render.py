@@ -17,3 +17,23 @@ def test_render_frame_shows_the_scene():
     r.close()
     assert img.shape == (64, 96, 3) and img.dtype == np.uint8
     assert img.std() > 5  # not a blank frame
+
+
+def test_render_a_trained_checkpoint(tmp_path):
+    pytest.importorskip("imageio")
+    try:
+        from pnp.render import WorldRenderer
+
+        WorldRenderer(PnPEnv(num_worlds=1, nthread=1).backend, 0, width=32, height=32).close()
+    except Exception as e:  # noqa: BLE001
+        pytest.skip(f"no offscreen GL context: {e}")
+    from tests.recipes.test_train import _train
+
+    import render as render_recipe  # recipes/ is on sys.path after the import above
+
+    _train(tmp_path / "run", "total_iterations=1")
+    out = tmp_path / "teacher.gif"
+    info = render_recipe.main(["--checkpoint", str(tmp_path / "run"), "--out", str(out), "--tries", "2",
+                               "--max-steps", "4", "--every", "2"])
+    assert out.stat().st_size > 0 and info["checkpoint_iteration"] == 1 and info["seeds_tried"] == 2
+    assert info["steps"] == 4 and not info["success"]  # 0.4 s: no policy succeeds that fast

@@ -30,6 +30,9 @@ READY_Z = (-0.03, 0.25)  # m, EE height above the handle axis for "gripper ready
 READY_ALIGN = 0.9  # |cos| of the gripper-handle angle for "gripper ready"
 GRASP_DIST = 0.035  # m, EE to the handle bar for a grasp
 FALL_HEIGHT = 0.35  # m, base below this counts as a fall
+# Half extents (base x, y) of a robot's standing footprint, trunk and legs: feet at
+# x = +-0.41 m, leg capsules to y = +-0.16 m (pnp.robot), plus ~4 cm of margin.
+FOOTPRINT_HALF = (0.45, 0.20)
 
 # Action per robot (8-D), units: m/s, m/s, rad/s, m, m, m, rad, probability.
 ACTION_NAMES = ("base_vx", "base_vy", "base_wz", "ee_x", "ee_y", "ee_z", "ee_yaw", "grasp")
@@ -251,15 +254,32 @@ def joint_limit_excess(arm_q: torch.Tensor) -> torch.Tensor:
 
 
 def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
-    """Proxy for trunk/leg-box and robot-robot contact: 1.0 while overlapping, per robot."""
-    bx, by, _ = (frame or BaseFrame(s)).point_xyz(*s.box_pos[:, None].unbind(-1))  # [N, R]
-    # torch.maximum, not max(-1) over a dim of 2: reductions there can stall for ms on CPU.
-    reach = torch.maximum(s.box_size[:, 0], s.box_size[:, 1]).unsqueeze(1) / 2
-    hit = (bx.abs() < 0.55 + reach) & (by.abs() < 0.35 + reach)
+    """Proxy for trunk/leg-box and robot-robot contact, per robot: 1.0 while its footprint
+    rectangle (:data:`FOOTPRINT_HALF`) overlaps the box's (its yaw and edges) or the other
+    robot's. Rectangles, not circles: beside a 1.5 m box a bounding circle covers the spot
+    a robot must stand on to reach a handle."""
+    frame = frame or BaseFrame(s)
+    fx, fy = FOOTPRINT_HALF
+    # The box in each robot's base frame: centre and x axis (a yawed rectangle).
+    bx, by, _ = frame.point_xyz(*s.box_pos[:, None].unbind(-1))  # [N, R]
+    ux, uy = frame.rotate_xy(s.box_rot[:, None, 0, 0], s.box_rot[:, None, 1, 0])
+    n = torch.hypot(ux, uy).clamp(min=1e-6)
+    hit = _rects_overlap(bx, by, ux / n, uy / n, s.box_size[:, None, 0] / 2, s.box_size[:, None, 1] / 2, fx, fy)
     if s.base.shape[1] == 2:
-        dx, dy = s.base[:, 0, 0] - s.base[:, 1, 0], s.base[:, 0, 1] - s.base[:, 1, 1]
-        hit = hit | (torch.hypot(dx, dy) < 1.0).unsqueeze(1)
+        other = lambda x: x.flip(1)  # noqa: E731
+        ox, oy, _ = frame.point_xyz(other(s.base[..., 0]), other(s.base[..., 1]), frame.oz)
+        dyaw = other(s.base[..., 2]) - s.base[..., 2]
+        hit = hit | _rects_overlap(ox, oy, torch.cos(dyaw), torch.sin(dyaw), fx, fy, fx, fy)
     return hit.float()
+
+
+def _rects_overlap(cx, cy, ux, uy, hu, hv, fx: float, fy: float) -> torch.Tensor:
+    """Separating-axis test of the rectangle centred at (cx, cy) with unit x axis (ux, uy)
+    and half extents (hu, hv) against the axis-aligned one at the origin, half (fx, fy)."""
+    cu, cv = cx * ux + cy * uy, cy * ux - cx * uy  # centre offset in the rectangle's axes
+    au, av = ux.abs(), uy.abs()  # |cos|, |sin| of its yaw
+    return ((cx.abs() <= fx + hu * au + hv * av) & (cy.abs() <= fy + hu * av + hv * au)
+            & (cu.abs() <= hu + fx * au + fy * av) & (cv.abs() <= hv + fx * av + fy * au))
 
 
 def _opening(s: PnPState) -> torch.Tensor:

@@ -13,7 +13,7 @@ from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, FALL_HEIGHT, GRASP_DIST, LIFT_HEIGHT, MAX_OBJ_HEIGHT, OBS_BLOCKS, ON_FLOOR, READY_ALIGN,
+    ACTION_HIGH, ACTION_LOW, FALL_HEIGHT, FOOTPRINT_HALF, GRASP_DIST, LIFT_HEIGHT, MAX_OBJ_HEIGHT, OBS_BLOCKS, ON_FLOOR, READY_ALIGN,
     READY_XY, READY_Z, Geometry, PnPState,
 )
 from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
@@ -134,15 +134,34 @@ def _action_bounds(action):
 
 
 def _collisions(s: PnPState) -> torch.Tensor:
-    """Proxy for trunk/leg-box and robot-robot contact: 1.0 while overlapping, per robot."""
-    box_b = to_base(s, s.box_pos.unsqueeze(1).expand_as(s.ee_pos))  # [N, R, 3]
-    reach = s.box_size[:, None, :2].max(-1).values / 2
-    hit_box = (box_b[..., 0].abs() < 0.55 + reach) & (box_b[..., 1].abs() < 0.35 + reach)
-    hit = hit_box
-    if s.base.shape[1] == 2:
-        d = (s.base[:, 0, :2] - s.base[:, 1, :2]).norm(dim=-1) < 1.0
-        hit = hit | d.unsqueeze(1)
+    """Footprint rectangles (world frame, from corners) overlapping the box's or each other's."""
+    R = s.base.shape[1]
+    robot = [_corners(s.base[:, r, :2], s.base[:, r, 2], FOOTPRINT_HALF) for r in range(R)]
+    box_yaw = torch.atan2(s.box_rot[:, 1, 0], s.box_rot[:, 0, 0])
+    box = _corners(s.box_pos[:, :2], box_yaw, (s.box_size[:, 0] / 2, s.box_size[:, 1] / 2))
+    hit = torch.stack([_sat(robot[r], box) for r in range(R)], 1)
+    if R == 2:
+        hit = hit | _sat(robot[0], robot[1]).unsqueeze(1)
     return hit.float()
+
+
+def _corners(centre: torch.Tensor, yaw: torch.Tensor, half) -> torch.Tensor:
+    """[N, 4, 2] corners of rectangles with half extents ``half`` (floats or [N])."""
+    hx, hy = (torch.as_tensor(h, dtype=centre.dtype).expand(centre.shape[0]) for h in half)
+    local = torch.stack([torch.stack([sx * hx, sy * hy], -1) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))], 1)
+    return centre.unsqueeze(1) + local @ yaw_rotation(yaw)[:, :2, :2].transpose(-1, -2)
+
+
+def _sat(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Overlap of convex polygons [N, 4, 2] by projecting both on every edge normal."""
+    overlap = torch.ones(a.shape[0], dtype=torch.bool)
+    for poly in (a, b):
+        for k in range(2):
+            edge = poly[:, k + 1] - poly[:, k]
+            axis = torch.stack([-edge[:, 1], edge[:, 0]], -1)
+            pa, pb = ((x @ axis.unsqueeze(-1)).squeeze(-1) for x in (a, b))  # [N, 4]
+            overlap &= (pa.max(1).values >= pb.min(1).values) & (pb.max(1).values >= pa.min(1).values)
+    return overlap
 
 
 def observations(s: PnPState, g: Geometry, last_action: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -13,7 +13,7 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from pnp.kinematics import ArmKinematics, gripper_yaw, wrap_angle
+from pnp.kinematics import ArmKinematics, clamp_reach, gripper_yaw, wrap_angle
 from pnp.robot import ARM_SPEED, FINGER_STROKE
 
 LL_DT = 0.02  # s, LL policy at 50 Hz
@@ -38,10 +38,7 @@ class LowLevelExecutor(ABC):
 
 class IdealExecutor(LowLevelExecutor):
     def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 3):
-        from pnp.kinematic import clamp_reach  # here: pnp.kinematic imports pnp.backend, which imports us
-
         self.kin = ArmKinematics()
-        self._clamp_reach = clamp_reach
         self.ik_iters = ik_iters
         self.q_target = self.kin.q_default.expand(num_worlds, num_robots, 6).clone()
         # IK is seeded with the previous solution: HL commands change little per step,
@@ -74,7 +71,7 @@ class IdealExecutor(LowLevelExecutor):
         # Targets out of reach go to the nearest reachable point first, as on the kinematic
         # backend: DLS IK on an unreachable target ends wherever its damping lands (measured:
         # a kinematic-trained policy's EE missed its commands by a median 0.44 m on MuJoCo).
-        ee = self._clamp_reach(command[..., 3:6])
+        ee = clamp_reach(command[..., 3:6])
         q_ik = self.kin.ik(self.q_ik.reshape(-1, 6), ee.reshape(-1, 3), yaw.reshape(-1), self.ik_iters)
         self.q_ik = q_ik = q_ik.reshape(N, R, 6)
         ticks = torch.floor(t / LL_DT) + 1  # LL ticks elapsed at each substep

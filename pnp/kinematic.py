@@ -84,10 +84,8 @@ import torch
 
 from pnp.backend import Backend, Layout
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN, HANDLE_RADIUS
-from pnp.robot import (
-    ARM_DEFAULT, ARM_MOUNT, ARM_RANGES, ARM_SPEED, FINGER_STROKE, FOREARM, GRIPPER_LEN, SHOULDER_HEIGHT,
-    STANDING_HEIGHT, UPPER_ARM, WRIST,
-)
+from pnp.kinematics import L1, L2, LW, REACH_MAX, REACH_MIN, SHOULDER
+from pnp.robot import ARM_DEFAULT, ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
 from pnp.task import GRASP_DIST, HL_DT, PnPState
 
 GRAVITY = 9.81  # m/s^2
@@ -97,12 +95,6 @@ EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
 # which a stochastic policy almost never samples.
 FINGER_SPEED = 1.0
 GRASP_ALIGN = 0.7  # grasp needs 1 - |cos(closing axis, bar axis)| above this (~17 deg)
-L1, L2 = UPPER_ARM, FOREARM  # shoulder (j2) -> elbow (j3) -> wrist pitch (j5)
-LW = WRIST + GRIPPER_LEN  # wrist pitch (j5) -> EE site, along the gripper's approach axis
-SHOULDER = (ARM_MOUNT[0], ARM_MOUNT[1], ARM_MOUNT[2] + SHOULDER_HEIGHT)  # j2 in the base frame
-_J3_MAX = ARM_RANGES[2][1]  # the elbow never straightens fully
-REACH_MAX = 0.995 * math.sqrt(L1 * L1 + L2 * L2 + 2 * L1 * L2 * math.cos(_J3_MAX))
-REACH_MIN = 0.25  # m, ours: keeps the wrist clear of the shoulder
 _Q6_WIND = ARM_RANGES[5][1] - 0.1  # flip the gripper's half-turn choice before j6 reaches its limit
 
 
@@ -129,16 +121,6 @@ def _zyx_rotation(psi, beta, gamma):
     row1 = torch.stack([sp * cb, sp * sb * sg + cp * cg, sp * sb * cg - cp * sg], -1)
     row2 = torch.stack([-sb, cb * sg, cb * cg], -1)
     return torch.stack([row0, row1, row2], -2)
-
-
-def clamp_reach(ee: torch.Tensor) -> torch.Tensor:
-    """EE positions [..., 3] (base frame, downward gripper) moved into the arm's reach."""
-    sh = torch.tensor(SHOULDER, dtype=ee.dtype, device=ee.device)
-    w = ee - sh
-    w = torch.cat([w[..., :2], w[..., 2:] + LW], -1)  # wrist centre relative to the shoulder
-    n = w.norm(dim=-1, keepdim=True)
-    w = w * (n.clamp(REACH_MIN, REACH_MAX) / n.clamp(min=1e-6))
-    return torch.cat([w[..., :2], w[..., 2:] - LW], -1) + sh
 
 
 def arm_ik(ee: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:

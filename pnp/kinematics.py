@@ -13,12 +13,32 @@ import pytorch_kinematics as pk
 import pytorch_kinematics.mjcf as pk_mjcf
 import torch
 
-from pnp.robot import ARM_DEFAULT, ARM_JOINTS, ARM_RANGES, Quadruped
+from pnp.robot import (
+    ARM_DEFAULT, ARM_JOINTS, ARM_MOUNT, ARM_RANGES, FOREARM, GRIPPER_LEN, SHOULDER_HEIGHT, UPPER_ARM, WRIST, Quadruped,
+)
 
 # pytorch-kinematics 0.10 indexes its joint-type map with np.int32 keys (KeyError).
 pk_mjcf.JOINT_TYPE_MAP = {int(k): v for k, v in pk_mjcf.JOINT_TYPE_MAP.items()}
 
 EE_SITE = "ee_site"
+# The arm's planar chain for a downward gripper, shared by both backends' reach clamp and
+# the kinematic backend's closed-form IK.
+L1, L2 = UPPER_ARM, FOREARM  # shoulder (j2) -> elbow (j3) -> wrist pitch (j5)
+LW = WRIST + GRIPPER_LEN  # wrist pitch (j5) -> EE site, along the gripper's approach axis
+SHOULDER = (ARM_MOUNT[0], ARM_MOUNT[1], ARM_MOUNT[2] + SHOULDER_HEIGHT)  # j2 in the base frame
+_J3_MAX = ARM_RANGES[2][1]  # the elbow never straightens fully
+REACH_MAX = 0.995 * math.sqrt(L1 * L1 + L2 * L2 + 2 * L1 * L2 * math.cos(_J3_MAX))
+REACH_MIN = 0.25  # m, ours: keeps the wrist clear of the shoulder
+
+
+def clamp_reach(ee: torch.Tensor) -> torch.Tensor:
+    """EE positions [..., 3] (base frame, downward gripper) moved into the arm's reach."""
+    sh = torch.tensor(SHOULDER, dtype=ee.dtype, device=ee.device)
+    w = ee - sh
+    w = torch.cat([w[..., :2], w[..., 2:] + LW], -1)  # wrist centre relative to the shoulder
+    n = w.norm(dim=-1, keepdim=True)
+    w = w * (n.clamp(REACH_MIN, REACH_MAX) / n.clamp(min=1e-6))
+    return torch.cat([w[..., :2], w[..., 2:] - LW], -1) + sh
 
 
 def _arm_mjcf() -> str:

@@ -9,7 +9,8 @@ from torchrl.envs.utils import check_env_specs
 from pnp.backend import Layout
 from pnp.box import DUAL_ROBOT_BOXES, HANDLE_RADIUS, SINGLE_ROBOT_BOXES
 from pnp.envs.pnp_env import PnPEnv
-from pnp.kinematic import REACH_MAX, KinematicBackend, arm_fk, arm_ik, clamp_reach
+from pnp.kinematic import KinematicBackend, arm_fk, arm_ik
+from pnp.kinematics import REACH_MAX, clamp_reach
 from pnp.kinematics import ArmKinematics, gripper_down_rotation
 from pnp.robot import ARM_DEFAULT, FINGER_STROKE, STANDING_HEIGHT
 from pnp.scripted import ScriptedPnP

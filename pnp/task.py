@@ -172,7 +172,17 @@ def geometry(s: PnPState) -> Geometry:
     h0, h1 = h[:, None, 0].unbind(-1), h[:, None, 1].unbind(-1)
     d0 = [a - b for a, b in zip(h0, ee)]
     d1 = [a - b for a, b in zip(h1, ee)]
-    k1 = _dot(d1, d1) < _dot(d0, d0)  # strict: ties pick handle 0, as argmin does
+    dd0, dd1 = _dot(d0, d0), _dot(d1, d1)
+    k1 = dd1 < dd0  # strict: ties pick handle 0, as argmin does
+    if R == 2:
+        # A robot's handle is its nearest, unless the other robot is nearer to that one:
+        # then it is the other handle (the other robot's ties win). Who takes which is
+        # still the policies' choice (whoever comes closer first), but the second robot's
+        # handle terms now lead it to the free handle; with the nearest for both, two
+        # warm-started robots settled on one handle (kinematic backend, 2026-11-24).
+        own = torch.where(k1, dd1, dd0)
+        conflict = (k1[:, 0] == k1[:, 1]).unsqueeze(1)
+        k1 = k1 ^ (conflict & torch.stack([own[:, 0] > own[:, 1], own[:, 1] >= own[:, 0]], 1))
     ee_handle = [torch.where(k1, a, b) for a, b in zip(d1, d0)]
     handle = _stack([torch.where(k1, a, b) for a, b in zip(h1, h0)], N, R)
     bar_axis = s.box_rot[:, None, :, 1].unbind(-1)  # box y axis

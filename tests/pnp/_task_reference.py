@@ -47,7 +47,14 @@ def handles(s: PnPState) -> torch.Tensor:
 def geometry(s: PnPState) -> Geometry:
     h = handles(s)  # [N, 2, 3]
     d = h.unsqueeze(1) - s.ee_pos.unsqueeze(2)  # [N, R, 2, 3]
-    k = d.norm(dim=-1).argmin(-1)  # [N, R]
+    dist = d.norm(dim=-1)  # [N, R, 2]
+    k = dist.argmin(-1)  # [N, R]
+    if s.ee_pos.shape[1] == 2:  # two robots on one handle: the farther takes the other
+        own = dist.gather(2, k.unsqueeze(-1)).squeeze(-1)
+        same = k[:, 0] == k[:, 1]
+        k = k.clone()
+        k[same & (own[:, 0] > own[:, 1]), 0] ^= 1
+        k[same & (own[:, 1] >= own[:, 0]), 1] ^= 1
     idx = k[..., None, None].expand(-1, -1, 1, 3)
     handle = torch.gather(h.unsqueeze(1).expand(-1, s.ee_pos.shape[1], -1, -1), 2, idx).squeeze(2)
     ee_handle = torch.gather(d, 2, idx).squeeze(2)

@@ -39,7 +39,8 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   When closing fingers reach the bar radius while the EE is within ``GRASP_DIST`` of a
   handle bar (the one whose centre is nearest; ``pnp.task.geometry`` picks the same, except
   that of two robots at one handle the farther is assigned the other) and the closing
-  axis is within ``GRASP_ALIGN`` of perpendicular to the bar, the handle is grasped: fingers stop at ``HANDLE_RADIUS`` and both pads report touch.
+  axis is within ``GRASP_ALIGN`` of perpendicular to the bar, the handle is grasped:
+  fingers stop at ``HANDLE_RADIUS`` and both pads report touch.
   Fingers that closed on nothing cannot grasp until they open again.
 * **Grasped box**: moves rigidly with the grasping gripper, keeping the relative pose
   (position and yaw in the gripper's yaw frame) of grasp time. The grasp is kept while

@@ -62,6 +62,24 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
         written.append(_save(fig, out_dir / "stage_shares.png"))
 
+    succ, eps = _series(rows, "success_rate"), _series(rows, "episodes")
+    ok = np.isfinite(succ) & (np.nan_to_num(eps) > 0)
+    if ok.any():  # episodes end in bursts: dots per iteration, line over windows weighted by episodes
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        ax.plot(it[ok], succ[ok], ".", ms=3, alpha=0.3, label="per iteration")
+        w = max(1, len(rows) // 50)
+        x, y = [], []
+        for i in range(0, len(rows), w):
+            m = ok[i:i + w]
+            if m.any():
+                x.append(it[i:i + w][m].mean())
+                y.append(np.average(succ[i:i + w][m], weights=eps[i:i + w][m]))
+        ax.plot(x, y, "-", label=f"over {w}-iteration windows")
+        ax.set(xlabel="iteration", ylabel="training success rate (stochastic policy)", ylim=(0, 1))
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        written.append(_save(fig, out_dir / "success_rate.png"))
+
     rho = sorted({k for r in rows for k in r if k.startswith("rho/")})
     if rho:
         fig, ax = plt.subplots(figsize=(7, 4))

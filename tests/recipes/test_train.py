@@ -49,7 +49,7 @@ def test_train_then_evaluate(tmp_path):
     for key in ("success_rate", "mean_end_stage", "stage_share/S0", "rho/gripper_ready_pose", "train/loss_objective",
                 "train/loss_critic", "frames", "wall_s"):
         assert key in rows[-1], key
-    for png in ("mean_end_stage.png", "stage_shares.png", "rho.png"):
+    for png in ("mean_end_stage.png", "stage_shares.png", "success_rate.png", "rho.png"):
         assert (run / png).stat().st_size > 0
     assert any(run.glob("**/scalars/mean_end_stage.csv"))  # the csv logger's files
 

@@ -18,6 +18,7 @@ from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
 from pnp.losses.distributions import TanhNormalGripper
+from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
 from pnp.ee_task import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.pnp_env import PnPEnv
@@ -68,11 +69,15 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
     StageTransition -> reward schedule."""
     task = _task(env_cfg)
     if task == "pnp":
+        boxes = env_cfg.get("boxes")
+        if boxes not in (None, "single", "dual"):
+            raise ValueError(f"env.boxes must be null, 'single' or 'dual', got {boxes!r}")
         base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
                       backend=str(env_cfg.backend), seed=int(seed), nthread=env_cfg.get("nthread"),
                       start_range=tuple(env_cfg.get("start_range") or START_RANGE),
                       grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),
-                      terminate_on_success=bool(env_cfg.get("terminate_on_success", True)))
+                      terminate_on_success=bool(env_cfg.get("terminate_on_success", True)),
+                      box_assets={None: None, "single": SINGLE_ROBOT_BOXES, "dual": DUAL_ROBOT_BOXES}[boxes])
     else:
         if int(env_cfg.num_robots) != 1:
             raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")

@@ -70,3 +70,13 @@ def test_adapt_curriculum_reuses_worlds_cyclically():
     assert out["rho"][:, 0, 0].tolist() == [0, 2, 4, 0, 2] and torch.equal(out["hist"], state["hist"])
     with pytest.raises(ValueError, match="2 robots"):
         adapt_curriculum({"rho": torch.zeros(3, 2, 2)}, 3, 1)
+
+
+def test_env_boxes_picks_the_assets():
+    from pnp.box import DUAL_ROBOT_BOXES
+
+    cfg = _cfg("train", ["env.backend=kinematic", "env.num_worlds=2", "env.boxes=dual"])
+    assert _common.make_env(cfg.env, cfg.curriculum, 0).base_env.box_assets == DUAL_ROBOT_BOXES
+    with pytest.raises(ValueError, match="'huge'"):
+        bad = _cfg("train", ["env.backend=kinematic", "env.boxes=huge"])
+        _common.make_env(bad.env, bad.curriculum, 0)

@@ -61,8 +61,13 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
 
 Simplifications (with respect to the MuJoCo backend):
 
-* No contacts at all: bases, legs, arm and gripper pass through the box and through each
-  other; the box is never pushed, only carried. (The env's collision *term* is a
+* No contacts: bases, legs, arm and gripper pass through the box, robots through each
+  other (on MuJoCo robots do not collide either); the box is never pushed, only carried.
+  Optionally (``box_blocks_base=True``, off by default) a base whose footprint
+  (``pnp.task.FOOTPRINT_HALF``) would newly overlap the box's, while it does not hold the
+  box, stays where it was for that step. On MuJoCo the legs hit the box and shove it;
+  blocking is the cheaper stand-in (the scripted dual policy, which routes through the
+  box, is tested without it). (The env's collision *term* is a
   geometric proxy computed by ``pnp.task`` and still works.)
 * The box never tilts or swings: it stays level (yaw only), also when hanging from one
   handle, and it never slips in the pads. It never leaves the floor unless carried.
@@ -87,7 +92,7 @@ from pnp.backend import Backend, Layout
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN, HANDLE_RADIUS
 from pnp.kinematics import L1, L2, LW, REACH_MAX, REACH_MIN, SHOULDER
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
-from pnp.task import GRASP_DIST, HL_DT, PnPState
+from pnp.task import FOOTPRINT_HALF, GRASP_DIST, HL_DT, PnPState, rects_overlap
 
 GRAVITY = 9.81  # m/s^2
 EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
@@ -155,6 +160,7 @@ class KinematicParams:
     grasp_dist: float = GRASP_DIST
     grasp_align: float = GRASP_ALIGN
     gravity: float = GRAVITY
+    box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -217,6 +223,12 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     bx = st["bx"] + torch.addcmul(cm * kvx, sm, kvy, value=-1)
     by = st["by"] + torch.addcmul(sm * kvx, cm, kvy)
     yaw1 = _wrap(yaw0 + dyaw)
+    if p.box_blocks_base:
+        # The footprint (pnp.task.FOOTPRINT_HALF) would newly overlap the box's: the legs
+        # hit it, the base stays (a robot already overlapping may move, to get out).
+        block = _box_overlap(st, bx, by, yaw1) & ~_box_overlap(st, st["bx"], st["by"], yaw0) & ~st["grasp"]
+        bx, by, yaw1 = torch.where(block, st["bx"], bx), torch.where(block, st["by"], by), torch.where(block, yaw0, yaw1)
+        vx, vy, wz = vx * ~block, vy * ~block, wz * ~block
 
     # Opening the gripper lets go.
     grasp = st["grasp"] & closed
@@ -326,6 +338,16 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     return out
 
 
+def _box_overlap(st: dict[str, torch.Tensor], bx: torch.Tensor, by: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """[N, R]: a base at (bx, by, yaw) has its footprint overlapping the (level) box's."""
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    dx, dy = st["box_x"].unsqueeze(1) - bx, st["box_y"].unsqueeze(1) - by
+    bc, bs = st["box_c"].unsqueeze(1), st["box_s"].unsqueeze(1)
+    size = st["box_size"]
+    return rects_overlap(c * dx + s * dy, c * dy - s * dx, c * bc + s * bs, c * bs - s * bc,
+                          size[:, 0:1] * 0.5, size[:, 1:2] * 0.5, *FOOTPRINT_HALF)
+
+
 def _box_rotation(c: torch.Tensor, s: torch.Tensor, zero: torch.Tensor, one: torch.Tensor) -> torch.Tensor:
     return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).unflatten(-1, (3, 3))
 
@@ -344,12 +366,14 @@ class KinematicBackend(Backend):
     """
 
     def __init__(self, num_worlds: int, num_robots: int, ee_tau: float = EE_TAU, finger_speed: float = FINGER_SPEED,
-                 dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN):
+                 dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN,
+                 box_blocks_base: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         self.num_worlds, self.num_robots = N, R = num_worlds, num_robots
         self.params = KinematicParams(dt=float(dt), ee_tau=float(ee_tau), finger_speed=float(finger_speed),
-                                      grasp_dist=float(grasp_dist), grasp_align=float(grasp_align))
+                                      grasp_dist=float(grasp_dist), grasp_align=float(grasp_align),
+                                      box_blocks_base=bool(box_blocks_base))
         f = dict(dtype=torch.float32)
         lim = torch.tensor(ARM_RANGES, **f)
         self.q_default = torch.tensor(ARM_DEFAULT, **f)

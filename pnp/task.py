@@ -274,16 +274,16 @@ def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
     bx, by, _ = frame.point_xyz(*s.box_pos[:, None].unbind(-1))  # [N, R]
     ux, uy = frame.rotate_xy(s.box_rot[:, None, 0, 0], s.box_rot[:, None, 1, 0])
     n = torch.hypot(ux, uy).clamp(min=1e-6)
-    hit = _rects_overlap(bx, by, ux / n, uy / n, s.box_size[:, None, 0] / 2, s.box_size[:, None, 1] / 2, fx, fy)
+    hit = rects_overlap(bx, by, ux / n, uy / n, s.box_size[:, None, 0] / 2, s.box_size[:, None, 1] / 2, fx, fy)
     if s.base.shape[1] == 2:
         other = lambda x: x.flip(1)  # noqa: E731
         ox, oy, _ = frame.point_xyz(other(s.base[..., 0]), other(s.base[..., 1]), frame.oz)
         dyaw = other(s.base[..., 2]) - s.base[..., 2]
-        hit = hit | _rects_overlap(ox, oy, torch.cos(dyaw), torch.sin(dyaw), fx, fy, fx, fy)
+        hit = hit | rects_overlap(ox, oy, torch.cos(dyaw), torch.sin(dyaw), fx, fy, fx, fy)
     return hit.float()
 
 
-def _rects_overlap(cx, cy, ux, uy, hu, hv, fx: float, fy: float) -> torch.Tensor:
+def rects_overlap(cx, cy, ux, uy, hu, hv, fx: float, fy: float) -> torch.Tensor:
     """Separating-axis test of the rectangle centred at (cx, cy) with unit x axis (ux, uy)
     and half extents (hu, hv) against the axis-aligned one at the origin, half (fx, fy)."""
     cu, cv = cx * ux + cy * uy, cy * ux - cx * uy  # centre offset in the rectangle's axes

@@ -384,3 +384,34 @@ def test_episode_goes_on_after_success_without_termination():
         td = env.step_mdp(td)
     assert (first > 0).sum() >= 6
     assert torch.equal(td["success_step"].squeeze(-1), first)  # the step it first held
+
+
+@pytest.mark.parametrize("blocks", [False, True])
+def test_box_blocks_base_keeps_a_walking_robot_out_of_the_box(blocks):
+    from pnp.task import FOOTPRINT_HALF, rects_overlap
+
+    n = 4
+    be = KinematicBackend(n, 1, box_blocks_base=blocks)
+    env = PnPEnv(num_worlds=n, num_robots=1, backend=be, seed=0)
+    td = env.reset()
+    st = be._st
+    # Each robot 1.5 m from its box centre along the box's x axis, facing it.
+    st["bx"][:, 0] = st["box_x"] - 1.5 * st["box_c"]
+    st["by"][:, 0] = st["box_y"] - 1.5 * st["box_s"]
+    st["yaw"][:, 0] = st["box_yaw"]
+    action = torch.zeros(n, 1, 8)
+    action[..., 0] = 0.5  # m/s forward, into the box
+    action[..., 3], action[..., 5] = 0.6, -0.2
+    for _ in range(30):
+        td["agents", "action"] = action
+        td = env.step(td)["next"]
+    st = be._st  # each step returns a new state dict
+    dx, dy = st["box_x"] - st["bx"][:, 0], st["box_y"] - st["by"][:, 0]
+    c, s = torch.cos(st["yaw"][:, 0]), torch.sin(st["yaw"][:, 0])
+    inside = rects_overlap(c * dx + s * dy, c * dy - s * dx, torch.ones(n), torch.zeros(n), st["box_size"][:, 0] / 2,
+                           st["box_size"][:, 1] / 2, *FOOTPRINT_HALF)
+    walked = torch.hypot(dx, dy)
+    if blocks:
+        assert not inside.any() and (walked < 1.5 - 0.4).all()  # walked up to the box, then stopped
+    else:
+        assert inside.all() and (walked < 0.05).all()  # 1.5 m walked: into the box, to its centre

@@ -79,15 +79,16 @@ class RobotEnvBase(EnvBase):
     batch_locked = True
     _STATE: tuple[str, ...] = ()
 
-    def _make_backend(self, backend, nthread, box: BoxAsset) -> Backend:
+    def _make_backend(self, backend, nthread, box: BoxAsset, options: dict | None = None) -> Backend:
+        """``options``: keyword arguments of the named backend's constructor."""
         if isinstance(backend, Backend):
             return backend
         if backend == "mujoco":
-            return MujocoBackend(self.num_worlds, self.num_robots, box, nthread=nthread)
+            return MujocoBackend(self.num_worlds, self.num_robots, box, nthread=nthread, **(options or {}))
         if backend == "kinematic":
             from pnp.kinematic import KinematicBackend  # optional second backend
 
-            return KinematicBackend(self.num_worlds, self.num_robots)
+            return KinematicBackend(self.num_worlds, self.num_robots, **(options or {}))
         raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")
 
     def _set_seed(self, seed: int | None):
@@ -160,7 +161,7 @@ class PnPEnv(RobotEnvBase):
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
                  start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
-                 terminate_on_success: bool = True, device="cpu"):
+                 terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
@@ -172,7 +173,7 @@ class PnPEnv(RobotEnvBase):
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
-        self.backend = self._make_backend(backend, nthread, self.box_assets[0])
+        self.backend = self._make_backend(backend, nthread, self.box_assets[0], backend_options)
         self.max_steps = int(round(EPISODE_S / HL_DT))
         self._make_specs()
         N, R = num_worlds, num_robots

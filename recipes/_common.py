@@ -73,12 +73,12 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
         if boxes not in (None, "single", "dual"):
             raise ValueError(f"env.boxes must be null, 'single' or 'dual', got {boxes!r}")
         backend = str(env_cfg.backend)
-        if backend == "kinematic" and env_cfg.get("box_blocks_base"):
-            from pnp.kinematic import KinematicBackend
-
-            backend = KinematicBackend(int(env_cfg.num_worlds), int(env_cfg.num_robots), box_blocks_base=True)
+        # Kinematic only (MuJoCo has real contacts): ignored elsewhere, so a run trained with it
+        # still evaluates on MuJoCo.
+        blocks = backend == "kinematic" and bool(env_cfg.get("box_blocks_base"))
         base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
-                      backend=backend, seed=int(seed), nthread=env_cfg.get("nthread"),
+                      backend=backend, backend_options={"box_blocks_base": True} if blocks else None,
+                      seed=int(seed), nthread=env_cfg.get("nthread"),
                       start_range=tuple(env_cfg.get("start_range") or START_RANGE),
                       grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),
                       terminate_on_success=bool(env_cfg.get("terminate_on_success", True)),

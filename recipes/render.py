@@ -6,8 +6,9 @@
     python recipes/render.py --checkpoint results/train_single/checkpoint_mujoco.pt --out results/single_pnp.gif
 
 With ``--checkpoint`` the trained teacher acts with its deterministic (mean) action on the
-MuJoCo backend (the robot count is the checkpoint's); ``--tries`` seeds are rendered in
-turn until one succeeds, and the JSON says how many it took.
+MuJoCo backend (the robot count is the checkpoint's); up to ``--tries`` episodes (layouts
+drawn in turn from ``--seed``) are rendered until one succeeds, and the JSON says how
+many it took.
 
 Needs Debian's ``libegl1 libegl-mesa0 libgl1-mesa-dri`` (``make render-deps``).
 """
@@ -66,7 +67,7 @@ def main(argv=None):
     p.add_argument("--every", type=int, default=2, help="keep every n-th HL step (10 Hz)")
     p.add_argument("--out", default="results/scripted_pnp.gif")
     p.add_argument("--checkpoint", default=None, help="a trained teacher (run folder or .pt); default: scripted")
-    p.add_argument("--tries", type=int, default=10, help="with --checkpoint: seeds tried until a success")
+    p.add_argument("--tries", type=int, default=10, help="with --checkpoint: episodes tried until a success")
     p.add_argument("--max-steps", type=int, default=None, help="cut the episode short (default: 45 s)")
     args = p.parse_args(argv)
     if args.robots not in (1, 2):
@@ -95,16 +96,15 @@ def _render_teacher(args) -> dict:
 
     path = resolve_checkpoint(args.checkpoint, "runs")
     eval_env = OmegaConf.create({"backend": "mujoco", "nthread": 1, "max_episode_steps": None, "start_range": None})
-    for k in range(args.tries):
-        seed = args.seed + k
-        env, actor, ckpt, _, folded = load_policy(path, eval_env, 1, seed)
+    env, actor, ckpt, _, folded = load_policy(path, eval_env, 1, args.seed)
+    for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
             info = render_episode(env, actor, args.out, every=args.every, max_steps=args.max_steps)
-        env.close()
         if info["success"]:
             break
-    info.update(provenance(seed=seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
-                           seeds_tried=k + 1, folded_inputs=folded))
+    env.close()
+    info.update(provenance(seed=args.seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
+                           episodes_tried=k + 1, folded_inputs=folded))
     return info
 
 

@@ -80,3 +80,10 @@ def test_env_boxes_picks_the_assets():
     with pytest.raises(ValueError, match="'huge'"):
         bad = _cfg("train", ["env.backend=kinematic", "env.boxes=huge"])
         _common.make_env(bad.env, bad.curriculum, 0)
+
+
+def test_env_box_blocks_base_reaches_the_kinematic_backend_only():
+    cfg = _cfg("train", ["env.backend=kinematic", "env.num_worlds=2", "env.box_blocks_base=true"])
+    assert _common.make_env(cfg.env, cfg.curriculum, 0).base_env.backend.params.box_blocks_base
+    cfg = _cfg("train", ["env.backend=kinematic", "env.num_worlds=2"])
+    assert not _common.make_env(cfg.env, cfg.curriculum, 0).base_env.backend.params.box_blocks_base

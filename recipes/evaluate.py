@@ -21,6 +21,10 @@ Failure causes: every failed trial gets exactly one, the first that applies of
   or set down inside the goal but not released).
 
 Completion time is steps x 0.1 s over successful trials (mean and population std).
+
+``sample=[ee]`` (or ``base``, ``grip``, ``all``) is a diagnostic, not the paper's metric:
+those action groups are drawn from the policy's distribution, the rest stay at the mean.
+It measures what the deterministic policy loses to the noise it was trained with.
 """
 from __future__ import annotations
 
@@ -39,7 +43,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    N_STAGES, ObsNorm, fold_constant_inputs, load_checkpoint, make_env, make_models, resolve_checkpoint, seconds, seed_everything,
+    ACTION, N_STAGES, ObsNorm, fold_constant_inputs, load_checkpoint, make_env, make_models, resolve_checkpoint, seconds, seed_everything,
 )
 from _provenance import provenance  # noqa: E402
 
@@ -51,6 +55,7 @@ from pnp.terms import CONDITIONS, REWARD_TERMS  # noqa: E402
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
 FALL = REWARD_TERMS.index("fall")
 CAUSES = ("fall", "diverged", "dropped_box", "timeout")
+ACTION_GROUPS = {"base": slice(0, 3), "ee": slice(3, 7), "grip": slice(7, 8), "all": slice(0, 8)}
 
 
 def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, peak: torch.Tensor, step: int) -> list[dict]:
@@ -74,8 +79,31 @@ def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, peak: torch.Te
     return rows
 
 
-def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
-    """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order."""
+def _check_groups(sample) -> tuple[str, ...]:
+    groups = tuple(sample or ())
+    bad = [g for g in groups if g not in ACTION_GROUPS]
+    if bad:
+        raise ValueError(f"sample: unknown action group(s) {bad}; choose from {sorted(ACTION_GROUPS)}")
+    return groups
+
+
+def _act(actor, td, groups: tuple[str, ...]):
+    """The mean action, with the entries of ``groups`` replaced by a draw from the policy."""
+    if not groups:
+        return actor(td)
+    with set_interaction_type(InteractionType.RANDOM):
+        drawn = actor(td.clone())[ACTION]
+    td = actor(td)
+    action = td[ACTION].clone()
+    for g in groups:
+        action[..., ACTION_GROUPS[g]] = drawn[..., ACTION_GROUPS[g]]
+    return td.set(ACTION, action)
+
+
+def run_trials(env, actor, trials: int, progress: bool = False, sample=None) -> list[dict]:
+    """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order
+    (``sample``: action groups drawn from the policy instead, a diagnostic)."""
+    groups = _check_groups(sample)
     n_worlds = env.base_env.num_worlds
     per_world = math.ceil(trials / n_worlds)
     count = torch.zeros(n_worlds, dtype=torch.long)
@@ -86,7 +114,7 @@ def run_trials(env, actor, trials: int, progress: bool = False) -> list[dict]:
     td = env.reset()
     with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
         while bool((count < per_world).any()):
-            td = actor(td)
+            td = _act(actor, td, groups)
             out, td = env.step_and_maybe_reset(td)
             nxt, step = out["next"], step + 1
             lifted |= nxt["agents", "stage_conditions"][..., LIFTED].any(-1)
@@ -172,7 +200,8 @@ def evaluate(cfg: DictConfig) -> dict:
     env, actor, ckpt, env_cfg, folded = load_policy(ckpt_path, cfg.env, min(int(cfg.env.num_worlds), int(cfg.trials)),
                                                     int(cfg.seed))
     tcfg = OmegaConf.create(ckpt["cfg"])
-    records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
+    sample = _check_groups(cfg.get("sample"))
+    records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress), sample)
     env.close()
     result = {
         "backend": env_cfg.backend, "num_robots": int(env_cfg.num_robots), "num_worlds": int(env_cfg.num_worlds),
@@ -183,14 +212,15 @@ def evaluate(cfg: DictConfig) -> dict:
         # This run's training (a warm-started run's source trained before: see warm_started_from).
         "env_steps": int(ckpt["counters"]["frames"]), "train_wall_s": float(ckpt["counters"]["wall_s"]),
         "warm_started_from": tcfg.get("warm_start"), "trained_backend": tcfg.env.backend,
-        "folded_inputs": folded,
+        "folded_inputs": folded, "sampled_actions": list(sample),
         "schedule": tcfg.curriculum.schedule if tcfg.curriculum.stage_rewards else "none",
         "wall_s": time.monotonic() - t0, **provenance(),
     }
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env_cfg.backend}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
-    method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})"
+    method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})" + (
+        f", sampled {'+'.join(sample)}" if sample else "")
     out.with_suffix(".md").write_text(table_md(result, method))
     result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
     return result

@@ -238,3 +238,18 @@ def test_peak_reading_logs_the_final_stage_too(tmp_path):
     ended = [r for r in rows if r["episodes"] > 0]
     assert ended and all(r["mean_final_stage"] <= r["mean_end_stage"] for r in ended)
     assert all(abs(sum(r[f"final_stage_share/S{i}"] for i in range(7)) - 1) < 1e-6 for r in ended)
+
+
+def test_evaluate_sample_draws_only_the_named_action_groups(tmp_path):
+    _train(tmp_path / "run", "total_iterations=1")
+    ev = _cfg("evaluate", ["env.backend=kinematic"]).env
+    env, actor, *_ = evaluate_recipe.load_policy(tmp_path / "run" / "checkpoint.pt", ev, 4, seed=0)
+    td = env.reset()
+    mean = evaluate_recipe._act(actor, td.clone(), ())[_common.ACTION]
+    mixed = evaluate_recipe._act(actor, td.clone(), ("ee",))[_common.ACTION]
+    ee = evaluate_recipe.ACTION_GROUPS["ee"]
+    torch.testing.assert_close(mixed[..., :3], mean[..., :3])
+    torch.testing.assert_close(mixed[..., 7:], mean[..., 7:])
+    assert not torch.allclose(mixed[..., ee], mean[..., ee])  # drawn, not the mean
+    with pytest.raises(ValueError, match="'wrist'"):
+        evaluate_recipe.run_trials(env, actor, trials=1, sample=["wrist"])

@@ -147,7 +147,6 @@ def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int
     if not len(idx):
         return []
     const = obs_norm(obs_norm.mean.float().unsqueeze(0))[0, idx]  # the normalised old value
-    n_obs = obs_norm.mean.numel()
     for net in nets:
         w, b = net.mlp.params["0", "weight"], net.mlp.params["0", "bias"]
         per_agent = w.shape[-1] // net.n_agents if net.centralised else w.shape[-1]

@@ -49,13 +49,15 @@ from _provenance import provenance  # noqa: E402
 
 from pnp.layout import START_RANGE  # noqa: E402
 from pnp.scene import GOAL_RADIUS  # noqa: E402
-from pnp.task import EPISODE_S, HL_DT  # noqa: E402
+from pnp.task import ACTION_NAMES, EPISODE_S, HL_DT  # noqa: E402
 from pnp.terms import CONDITIONS, REWARD_TERMS  # noqa: E402
 
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
 FALL = REWARD_TERMS.index("fall")
 CAUSES = ("fall", "diverged", "dropped_box", "timeout")
-ACTION_GROUPS = {"base": slice(0, 3), "ee": slice(3, 7), "grip": slice(7, 8), "all": slice(0, 8)}
+_AI = ACTION_NAMES.index
+ACTION_GROUPS = {"base": slice(_AI("base_vx"), _AI("base_wz") + 1), "ee": slice(_AI("ee_x"), _AI("ee_yaw") + 1),
+                 "grip": slice(_AI("grasp"), _AI("grasp") + 1), "all": slice(0, len(ACTION_NAMES))}
 
 
 def _end_records(nxt, worlds: torch.Tensor, lifted: torch.Tensor, peak: torch.Tensor, step: int) -> list[dict]:

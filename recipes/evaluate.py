@@ -91,11 +91,10 @@ def _check_groups(sample) -> tuple[str, ...]:
 
 def _act(actor, td, groups: tuple[str, ...]):
     """The mean action, with the entries of ``groups`` replaced by a draw from the policy."""
-    if not groups:
-        return actor(td)
-    with set_interaction_type(InteractionType.RANDOM):
-        drawn = actor(td.clone())[ACTION]
     td = actor(td)
+    if not groups:
+        return td
+    drawn = actor[-1].get_dist(td).sample()  # from the loc/scale just written: no second forward
     action = td[ACTION].clone()
     for g in groups:
         action[..., ACTION_GROUPS[g]] = drawn[..., ACTION_GROUPS[g]]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from pnp.kinematics import LW, REACH_MAX, REACH_MIN, SHOULDER
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
@@ -249,6 +250,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "collision": _collisions(s, frame or BaseFrame(s)),
         "joint_limits": joint_limit_excess(s.arm_q),
         "fall": g.fell.float(),
+        "ee_out_of_reach": ee_out_of_reach(action[..., 3:6]),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 
@@ -256,6 +258,15 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
 def action_rate(action: torch.Tensor, last_action: torch.Tensor) -> torch.Tensor:
     """Squared action change per robot [N, R], each dim scaled by its half range."""
     return (((action - last_action) * _INV_SCALE) ** 2).sum(-1)
+
+
+def ee_out_of_reach(ee_cmd: torch.Tensor) -> torch.Tensor:
+    """Distance [N, R] from EE commands [N, R, 3] to :func:`pnp.kinematics.clamp_reach` of
+    them: the clamp moves the wrist centre radially about the shoulder, so it is the radial
+    excess of the wrist centre outside [REACH_MIN, REACH_MAX]."""
+    wx, wy, wz = ee_cmd[..., 0] - SHOULDER[0], ee_cmd[..., 1] - SHOULDER[1], ee_cmd[..., 2] - SHOULDER[2] + LW
+    n = torch.sqrt(wx * wx + wy * wy + wz * wz)
+    return torch.clamp(n - REACH_MAX, min=0.0) + torch.clamp(REACH_MIN - n, min=0.0)
 
 
 def joint_limit_excess(arm_q: torch.Tensor) -> torch.Tensor:

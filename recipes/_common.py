@@ -55,6 +55,12 @@ def _task(env_cfg: DictConfig) -> str:
 def schedule_args(cur: DictConfig, task: str = "pnp") -> tuple[str, dict]:
     """Name and kwargs of ``make_reward_schedule`` for a ``curriculum`` config."""
     cfg = TASKS[task][1]()
+    over = dict(cur.get("fixed_weights") or {})
+    unknown = sorted(set(over) - set(cfg["fixed_weights"]))
+    if unknown:
+        raise ValueError(f"curriculum.fixed_weights names unknown terms {unknown}; the R_fixed terms of "
+                         f"{task!r} are {sorted(cfg['fixed_weights'])}")
+    cfg["fixed_weights"].update({k: float(v) for k, v in over.items()})
     if not cur.stage_rewards:
         # Control run: only R_fixed; every stage-wise term becomes a fixed term of weight 0.
         cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})

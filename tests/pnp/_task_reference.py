@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
+from pnp.kinematics import clamp_reach
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.task import (
@@ -130,6 +131,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "collision": collision,
         "joint_limits": torch.clamp((s.arm_q - mid).abs() - 0.95 * half, min=0.0).sum(-1),
         "fall": g.fell.float(),
+        "ee_out_of_reach": (action[..., 3:6] - clamp_reach(action[..., 3:6])).norm(dim=-1),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -253,3 +253,18 @@ def test_evaluate_sample_draws_only_the_named_action_groups(tmp_path):
     assert not torch.allclose(mixed[..., ee], mean[..., ee])  # drawn, not the mean
     with pytest.raises(ValueError, match="'wrist'"):
         evaluate_recipe.run_trials(env, actor, trials=1, sample=["wrist"])
+
+
+def test_fixed_weights_override_weights_the_named_term_and_rejects_unknown_names():
+    cfg = _cfg("train", [*TINY, "+curriculum.fixed_weights.ee_out_of_reach=-2.0"])
+    _, kw = _common.schedule_args(cfg.curriculum)
+    assert kw["fixed_weights"]["ee_out_of_reach"] == -2.0
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    td = env.reset()
+    td["agents", "action"] = torch.zeros(4, 1, 8)
+    td["agents", "action"][..., 3] = 3.0  # far beyond reach (clipped to the 1.3 m bound first)
+    nxt = env.step(td)["next"]
+    excess = nxt["agents", "reward_terms"][..., REWARD_TERMS.index("ee_out_of_reach")]
+    assert torch.all(excess > 0.1)
+    with pytest.raises(ValueError, match="'ee_reach'"):
+        _common.schedule_args(_cfg("train", [*TINY, "+curriculum.fixed_weights.ee_reach=-1"]).curriculum)

@@ -15,6 +15,7 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, TransformedEnv
 
 from pnp.stage_graph import StageGraph, pnp_default_reward_config
+from pnp.terms import REWARD_TERMS
 from pnp.transforms import (
     AdaptiveRewardScaling,
     FixedScales,
@@ -152,7 +153,7 @@ def test_interrupted_run_does_not_enter_final_stage():
 
 def test_pnp_table_enters_final_stage_after_five_s6_episodes():
     t = make_reward_schedule("dynamic", K=2.0, mu_min=0.1, **pnp_default_reward_config())
-    terms = torch.ones(16)
+    terms = torch.ones(len(REWARD_TERMS))
     for i in range(5):
         step(t, [[6]], [[6]], terms=terms)
         reset(t, [True])

@@ -66,7 +66,8 @@ def schedule_args(cur: DictConfig, task: str = "pnp") -> tuple[str, dict]:
         cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})
         cfg.update(term_stage={}, mu={})
         return "fixed", cfg
-    cfg.update(K=float(cur.K), mu_min=float(cur.mu_min), final_after=int(cur.final_after))
+    cfg.update(K=float(cur.K), mu_min=float(cur.mu_min), final_after=int(cur.final_after),
+               completed_floor=float(cur.get("completed_floor", 0.0)))
     return str(cur.schedule), cfg
 
 

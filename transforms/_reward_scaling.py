@@ -257,13 +257,18 @@ class AdaptiveRewardScaling(StageRewardSchedule):
     ``state_dict``, sized on the first reset (from the stage written before it) or the
     first step. It is per process: each worker of a ``ParallelEnv`` or collector holds
     its own when the transform lives in the worker.
+
+    ``completed_floor`` (ours; 0, the default, is the paper's Eq. 2): terms whose stage
+    lies below lambda keep ``rho_j >= completed_floor * mu_j``.
     """
 
-    _own_keys = frozenset({"K", "mu_min", "final_after"})
+    _own_keys = frozenset({"K", "mu_min", "final_after", "completed_floor"})
     _lazy = ("rho", "final_streak", "in_final", "pending_stage")
 
-    def __init__(self, *, K: float, mu_min: float, final_after: int = 5, **cfg):
+    def __init__(self, *, K: float, mu_min: float, final_after: int = 5, completed_floor: float = 0.0, **cfg):
         super().__init__(**cfg)
+        if not 0.0 <= completed_floor <= 1.0:
+            raise ValueError(f"completed_floor must be in [0, 1], got {completed_floor}")
         if not K > 1:
             raise ValueError(f"K must be > 1, got {K}")
         if not mu_min > 0:
@@ -276,6 +281,7 @@ class AdaptiveRewardScaling(StageRewardSchedule):
         if final_after < 1:
             raise ValueError(f"final_after must be >= 1, got {final_after}")
         self.K, self.mu_min, self.final_after = float(K), float(mu_min), int(final_after)
+        self.completed_floor = float(completed_floor)
         for name in self._lazy:
             self.register_buffer(name, torch.empty(0))
 
@@ -322,6 +328,9 @@ class AdaptiveRewardScaling(StageRewardSchedule):
         mu = self._mu.to(self.rho)
         up = torch.minimum(self.rho * self.K, mu)
         down = torch.clamp(self.rho / self.K, min=self.mu_min)
+        if self.completed_floor > 0:  # not in Eq. 2: terms of stages below lambda keep a share of mu
+            done = self._term_stage < lam.unsqueeze(-1)
+            down = torch.where(done, torch.maximum(down, self.completed_floor * mu), down)
         new = torch.where(in_j, up, down)
         self.rho = torch.where(upd.unsqueeze(-1), new, self.rho)
         last = self.n_stages - 1

@@ -89,6 +89,21 @@ def test_hand_computed_update_sequence():
     assert step(t, [[2]]).item() == pytest.approx(1 + 2 + 0.5 - 1)
 
 
+def test_completed_floor_keeps_a_share_of_mu_below_lambda_only():
+    t = AdaptiveRewardScaling(**DYN, completed_floor=0.75)
+    expected = [
+        (1, [1.5, 1.0, 0.5]),  # a (stage 0 < 1): max(2/2, 0.75 * 2)
+        (1, [1.5, 2.0, 0.5]),
+        (2, [1.5, 6.0, 1.0]),  # b completed now: max(2/2, 0.75 * 8)
+        (0, [2.0, 3.0, 0.5]),  # lambda = 0: nothing lies below it, Eq. 2 as is
+    ]
+    for final, want in expected:
+        episode(t, [[final]])
+        assert rho(t) == want
+    with pytest.raises(ValueError, match="1.5"):
+        AdaptiveRewardScaling(**DYN, completed_floor=1.5)
+
+
 def test_rho_constant_within_an_episode():
     t = AdaptiveRewardScaling(**DYN)
     episode(t, [[1]])

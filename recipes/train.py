@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl,
+    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl, reach_loss,
     resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
 )
 from plots import plot_training  # noqa: E402
@@ -54,6 +54,7 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
     flat = batch.reshape(-1)
     params = [p for g in optim.param_groups for p in g["params"]]
     sums, n = defaultdict(float), 0
+    reach_coeff = float(cfg.loss.get("reach_coeff", 0.0))
     for _ in range(int(cfg.collect.num_epochs)):
         for idx in torch.randperm(flat.numel()).split(int(cfg.collect.minibatch_size)):
             mb = flat[idx]
@@ -61,6 +62,10 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
             _adapt_lr(optim, kl, cfg.optim)
             out = loss(mb)
             total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            if reach_coeff > 0:
+                reach = reach_loss(loss.actor_network, mb)
+                total = total + reach_coeff * reach
+                sums["ee_out_of_reach"] += float(reach.detach())
             optim.zero_grad(set_to_none=True)
             total.backward()
             sums["grad_norm"] += float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))

@@ -268,3 +268,24 @@ def test_fixed_weights_override_weights_the_named_term_and_rejects_unknown_names
     assert torch.all(excess > 0.1)
     with pytest.raises(ValueError, match="'ee_reach'"):
         _common.schedule_args(_cfg("train", [*TINY, "+curriculum.fixed_weights.ee_reach=-1"]).curriculum)
+
+
+def test_reach_loss_pulls_the_mean_ee_command_into_reach(tmp_path):
+    cfg = _cfg("train", [*TINY, "loss.reach_coeff=1.0"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    td = env.reset()
+    bias = [p for n, p in actor.named_parameters() if n.endswith("4.bias")][0]  # the loc/scale layer
+    with torch.no_grad():
+        bias[..., 3] += 3.0  # EE x loc deep in the tanh's flat end: x ~ 1.3, beyond reach
+    before = float(_common.reach_loss(actor, td).detach())
+    assert before > 0.1
+    opt = torch.optim.Adam(actor.parameters(), lr=1e-2)
+    for _ in range(50):
+        opt.zero_grad()
+        _common.reach_loss(actor, td).backward()
+        opt.step()
+    assert float(_common.reach_loss(actor, td).detach()) < 0.5 * before
+    _train(tmp_path / "run", "total_iterations=1", "loss.reach_coeff=1.0")
+    line = json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert line["train/ee_out_of_reach"] >= 0.0

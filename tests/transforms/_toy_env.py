@@ -18,6 +18,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 
 from pnp.stage_graph import pnp_default_reward_config, pnp_default_stage_graph
+from pnp.terms import CONDITIONS, REWARD_TERMS
 from pnp.transforms import StageTransition, make_reward_schedule
 
 
@@ -125,9 +126,9 @@ def make_curriculum(kind: str, chain: bool = False):
 
 
 def make_pnp_toy_env(emit_stage: bool = False) -> ToyStageEnv:
-    """Toy env with the PnP term count (16) and condition count (6)."""
+    """Toy env with the PnP term and condition counts."""
     reach = torch.tensor([[0, 6], [3, 5], [6, 6]])
-    return ToyStageEnv(n_terms=16, n_conditions=6, episode_len=[4, 5, 6], reach=reach, emit_stage=emit_stage)
+    return ToyStageEnv(n_terms=len(REWARD_TERMS), n_conditions=len(CONDITIONS), episode_len=[4, 5, 6], reach=reach, emit_stage=emit_stage)
 
 
 def make_transformed(kind: str, chain: bool = True, emit_stage: bool = False):

@@ -17,6 +17,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
+from pnp.terms import REWARD_TERMS
 from pnp.transforms import StageRewardSchedule, StageTransition
 
 from ._toy_env import make_curriculum, make_pnp_toy_env, make_transformed
@@ -98,7 +99,7 @@ def test_without_env(kind):
     t = make_curriculum(kind)
     nxt = {
         ("agents", "stage_conditions"): torch.ones(3, 2, 6, dtype=torch.bool),
-        ("agents", "reward_terms"): torch.ones(3, 2, 16),
+        ("agents", "reward_terms"): torch.ones(3, 2, len(REWARD_TERMS)),
         ("agents", "stage"): torch.full((3, 2, 1), 4),
         ("agents", "episode_stage"): torch.full((3, 2, 1), -1),
         "done": torch.zeros(3, 1, dtype=torch.bool),

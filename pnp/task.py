@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
-from pnp.kinematics import LW, REACH_MAX, REACH_MIN, SHOULDER
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
+from pnp.kinematics import LW, REACH_MAX, REACH_MIN, SHOULDER
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM

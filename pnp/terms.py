@@ -73,7 +73,7 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     # commands onto the reach boundary, so the excess does nothing; unpenalised, a MuJoCo
     # fine-tune parked its mean command there (x = 1.29 vs ~0.96 m reach) and stood 10 cm
     # short of the handle, a fixed point only the training noise escaped. Weight 0 here (from
-    # scratch, -1 cut the fast learning test's mean end stage from 0.85 to 0.17); fine-tunes
+    # scratch, -1 cut the fast learning test's mean end stage from 0.85 to 0.17, seed 0); fine-tunes
     # set it with curriculum.fixed_weights (results/train_single/LINEAGE.md).
     RewardTerm("ee_out_of_reach", None, 0.0, 0.0, float("inf")),
 )

@@ -33,8 +33,8 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl, reach_loss,
-    resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
+    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl,
+    reach_loss, resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
 )
 from plots import plot_training  # noqa: E402
 from _warm_start import adapt_curriculum, load_module, load_optimiser  # noqa: E402

@@ -128,7 +128,8 @@ def make_curriculum(kind: str, chain: bool = False):
 def make_pnp_toy_env(emit_stage: bool = False) -> ToyStageEnv:
     """Toy env with the PnP term and condition counts."""
     reach = torch.tensor([[0, 6], [3, 5], [6, 6]])
-    return ToyStageEnv(n_terms=len(REWARD_TERMS), n_conditions=len(CONDITIONS), episode_len=[4, 5, 6], reach=reach, emit_stage=emit_stage)
+    return ToyStageEnv(n_terms=len(REWARD_TERMS), n_conditions=len(CONDITIONS), episode_len=[4, 5, 6], reach=reach,
+                       emit_stage=emit_stage)
 
 
 def make_transformed(kind: str, chain: bool = True, emit_stage: bool = False):

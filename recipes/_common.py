@@ -311,18 +311,60 @@ def make_loss(loss_cfg: DictConfig, actor, critic, popart: PopArt | None) -> MAP
 
 
 # --- data --------------------------------------------------------------------------------------
-def collect(env: TransformedEnv, policy, carried: TensorDictBase, steps: int) -> tuple[TensorDictBase, TensorDictBase]:
+ROLL_IN = "roll_in"  # bool [N, 1] per step: the action was the policy's mean (a roll-in step)
+
+
+class MeanRollIn:
+    """Episodes that begin with the policy's *mean* action for a random number of steps,
+    then sample as usual (a roll-in / roll-out split, as in learning-to-search).
+
+    Why: evaluation runs the mean, and the mean has fixed points that the training noise
+    escapes (a MuJoCo policy stood 10 cm short of the handle with its arm at full reach,
+    LINEAGE.md), so PPO hardly ever sees those states. Rolled in on the mean, the sampled
+    roll-out starts there. Roll-in actions were not drawn from the policy, so their steps
+    are left out of the PPO loss (``ppo_update``); the roll-out's advantages only look ahead.
+
+    ``share`` of episodes get a roll-in of 1..``max_steps`` steps (uniform); the others none.
+    """
+
+    def __init__(self, num_worlds: int, share: float, max_steps: int):
+        if not 0.0 <= share <= 1.0 or max_steps < 1:
+            raise ValueError(f"collect.roll_in_share must be in [0, 1] and collect.roll_in_max_steps >= 1, "
+                             f"got {share} and {max_steps}")
+        self.share, self.max_steps = share, max_steps
+        self.length = torch.zeros(num_worlds, dtype=torch.long)  # roll-in steps of each world's episode
+
+    def begin(self, new: torch.Tensor) -> None:
+        """Draw roll-in lengths for the worlds whose episode starts now (bool [N])."""
+        n = int(new.sum())
+        if n:
+            draw = torch.randint(1, self.max_steps + 1, (n,))
+            self.length[new] = torch.where(torch.rand(n) < self.share, draw, 0)
+
+
+def collect(env: TransformedEnv, policy, carried: TensorDictBase, steps: int,
+            roll_in: MeanRollIn | None = None) -> tuple[TensorDictBase, TensorDictBase]:
     """``steps`` steps of every world from ``carried``; returns the [N, T] batch and the next carried td.
 
     The loop the Collector runs (step_and_maybe_reset), kept here because its carried td
     is the one piece of state a bit-for-bit resume needs and ``Collector.state_dict`` does
-    not hold it (its constructor even resets the env).
+    not hold it (its constructor even resets the env). With ``roll_in``, steps inside an
+    episode's roll-in take the mean action and are flagged ``ROLL_IN``.
     """
     out = []
     # Sampled actions: ProbabilisticActor's default interaction type is deterministic.
     with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
         for _ in range(steps):
             carried = policy(carried)
+            if roll_in is not None:
+                count = carried["step_count"].reshape(-1)  # steps already taken in the episode
+                roll_in.begin(count == 0)
+                det = count < roll_in.length
+                if det.any():
+                    # From the loc/scale the policy just wrote: no second forward.
+                    mean = policy.module[-1].get_dist(carried).deterministic_sample
+                    carried[ACTION] = torch.where(det[:, None, None], mean, carried[ACTION])
+                carried[ROLL_IN] = det.unsqueeze(-1)
             td, carried = env.step_and_maybe_reset(carried)
             out.append(td)
     return torch.stack(out, -1), carried

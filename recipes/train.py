@@ -33,8 +33,9 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
-    OBS, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss, make_models, policy_kl,
-    reach_loss, resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything, set_rng_state,
+    OBS, ROLL_IN, MeanRollIn, collect, episode_metrics, fold_constant_inputs, load_checkpoint, make_env, make_loss,
+    make_models, policy_kl, reach_loss, resolve_checkpoint, rng_state, save_checkpoint, schedule_of, seed_everything,
+    set_rng_state,
 )
 from plots import plot_training  # noqa: E402
 from _warm_start import adapt_curriculum, load_module, load_optimiser  # noqa: E402
@@ -52,11 +53,14 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
     if popart is not None:
         popart.update(batch.get(loss.tensor_keys.value_target))
     flat = batch.reshape(-1)
+    if ROLL_IN in flat.keys():  # roll-in actions were the mean, not drawn: no policy gradient from them
+        flat = flat[~flat[ROLL_IN].reshape(-1)]
     params = [p for g in optim.param_groups for p in g["params"]]
     sums, n = defaultdict(float), 0
     reach_coeff = float(cfg.loss.get("reach_coeff", 0.0))
-    for _ in range(int(cfg.collect.num_epochs)):
-        for idx in torch.randperm(flat.numel()).split(int(cfg.collect.minibatch_size)):
+    frames = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
+    for _ in range(int(cfg.collect.num_epochs) if frames else 0):
+        for idx in torch.randperm(frames).split(int(cfg.collect.minibatch_size)):
             mb = flat[idx]
             kl = policy_kl(loss.actor_network, mb)  # before the loss, which may rewrite loc/scale
             _adapt_lr(optim, kl, cfg.optim)
@@ -75,7 +79,7 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
                     sums[k] += float(out[k].detach().float().mean())
             sums["kl"] += kl
             n += 1
-    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
+    return {**{f"train/{k}": v / max(n, 1) for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
 
 
 def _adapt_lr(optim, kl: float, ocfg: DictConfig) -> None:
@@ -155,6 +159,8 @@ def train(cfg: DictConfig) -> dict:
     loss = make_loss(cfg.loss, actor, critic, popart)
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
+    share = float(cfg.collect.get("roll_in_share", 0.0))
+    roll_in = MeanRollIn(env.base_env.num_worlds, share, int(cfg.collect.get("roll_in_max_steps", 1))) if share else None
     if ckpt is not None:
         actor.load_state_dict(ckpt["actor"])
         critic.load_state_dict(ckpt["critic"])
@@ -164,6 +170,8 @@ def train(cfg: DictConfig) -> dict:
         carried = ckpt["carried"]
         counters = dict(ckpt["counters"])
         set_rng_state(ckpt["rng"])
+        if roll_in is not None and "roll_in" in ckpt:
+            roll_in.length.copy_(ckpt["roll_in"])
         _truncate_metrics(metrics_path, counters["iteration"])
     else:
         _truncate_metrics(metrics_path, 0)  # a reused folder starts a fresh log
@@ -194,6 +202,7 @@ def train(cfg: DictConfig) -> dict:
             "actor": actor.state_dict(), "critic": critic.state_dict(), "optim": optim.state_dict(),
             "curriculum": env.transform.state_dict(), "env": env.base_env.get_state(), "carried": carried,
             "rng": rng_state(), "wandb_id": wandb_id,
+            **({"roll_in": roll_in.length.clone()} if roll_in is not None else {}),
         })
 
     steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
@@ -205,7 +214,7 @@ def train(cfg: DictConfig) -> dict:
     stop_signal = _StopOnSignal()
     try:
         while counters["iteration"] < total:
-            batch, carried = collect(env, actor, carried, steps)
+            batch, carried = collect(env, actor, carried, steps, roll_in)
             losses = ppo_update(batch, loss, optim, popart, cfg)
             if obs_norm is not None:
                 obs_norm.update(batch[OBS])
@@ -213,7 +222,8 @@ def train(cfg: DictConfig) -> dict:
             counters["frames"] += batch.numel()
             counters["wall_s"] = wall0 + time.monotonic() - t0
             rho = schedule_of(env).rho_by_term() if hasattr(schedule_of(env), "rho_by_term") else {}
-            row = {**counters, **episode_metrics(batch), **losses, **{f"rho/{k}": v for k, v in rho.items()}}
+            extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if roll_in is not None else {}
+            row = {**counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
             with metrics_path.open("a") as f:
                 f.write(json.dumps(row) + "\n")
             logger.log_metrics({k: v for k, v in row.items() if math.isfinite(v)}, step=counters["iteration"])

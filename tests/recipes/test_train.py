@@ -69,8 +69,9 @@ def test_train_then_evaluate(tmp_path):
     assert table.startswith("| Method | Success rate (%) | Completion time (s) |")
 
 
-def test_resume_is_bit_for_bit(tmp_path):
-    extra = ["env.max_episode_steps=5", "seed=3"]
+@pytest.mark.parametrize("roll_in", [[], ["collect.roll_in_share=0.5", "collect.roll_in_max_steps=3"]])
+def test_resume_is_bit_for_bit(tmp_path, roll_in):
+    extra = ["env.max_episode_steps=5", "seed=3", *roll_in]
     _train(tmp_path / "straight", "total_iterations=4", *extra)
     _train(tmp_path / "split", "total_iterations=2", *extra)
     _train(tmp_path / "other", "total_iterations=4", "resume=" + str(tmp_path / "split"), *extra)  # ignored out_dir
@@ -289,3 +290,32 @@ def test_reach_loss_pulls_the_mean_ee_command_into_reach(tmp_path):
     _train(tmp_path / "run", "total_iterations=1", "loss.reach_coeff=1.0")
     line = json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
     assert line["train/ee_out_of_reach"] >= 0.0
+
+
+def test_roll_in_takes_the_mean_then_samples_and_stays_out_of_the_loss(tmp_path):
+    cfg = _cfg("train", [*TINY, "env.max_episode_steps=4"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    roll_in = _common.MeanRollIn(4, share=1.0, max_steps=2)
+    batch, _ = _common.collect(env, actor, env.reset(), 8, roll_in)  # two 4-step episodes per world
+    count = batch["step_count"].squeeze(-1)  # [N, T] steps taken before each action
+    flag = batch[_common.ROLL_IN].squeeze(-1)
+    assert flag.any() and (~flag).any()
+    # share 1: every episode rolls in for 1-2 steps, so its first step is always a mean action
+    assert flag[count == 0].all() and not flag[count >= 2].any()
+    mean = actor.module[-1].get_dist(batch).deterministic_sample
+    act = batch[_common.ACTION]
+    torch.testing.assert_close(act[flag], mean[flag])
+    assert not torch.allclose(act[~flag][..., :7], mean[~flag][..., :7])  # drawn
+    # All roll-in: nothing is left to train on, so the actor does not move.
+    loss = _common.make_loss(cfg.loss, actor, _common.make_models(cfg.model, env, "none", 0.98)[1], None)
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    before = [p.clone() for p in actor.parameters()]
+    batch[_common.ROLL_IN] = torch.ones_like(batch[_common.ROLL_IN])
+    train_recipe.ppo_update(batch, loss, optim, None, cfg)
+    assert all(torch.equal(p, q) for p, q in zip(before, actor.parameters()))
+    with pytest.raises(ValueError, match="roll_in_share"):
+        _common.MeanRollIn(4, share=1.5, max_steps=2)
+    _train(tmp_path / "run", "total_iterations=1", "collect.roll_in_share=1.0", "collect.roll_in_max_steps=2")
+    line = json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert 0.0 < line["roll_in_frames"] < 1.0

@@ -82,6 +82,22 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
     return {**{f"train/{k}": v / max(n, 1) for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
 
 
+def desync_episodes(carried, max_steps):
+    """Start each world's first episode at a random step of the ``max_steps`` limit.
+
+    Why: every world resets at once at the start and episodes have a fixed length (no
+    termination on success), so without this all worlds stay in phase: each batch of
+    T steps holds the same 1-2 s of every episode (all approach, then all grasp ...) and
+    consecutive PPO updates see different parts of the task (as rsl_rl, which starts
+    episode clocks at random). Only the first episode of each world is cut short.
+    """
+    if not max_steps:
+        raise ValueError("collect.desync_episodes needs env.max_episode_steps (the limit whose clock it offsets)")
+    count = carried["step_count"]
+    carried["step_count"] = torch.randint_like(count, 0, int(max_steps))
+    return carried
+
+
 def _adapt_lr(optim, kl: float, ocfg: DictConfig) -> None:
     """KL-adaptive step size (as rsl_rl): a fixed lr is too large or too small as the policy sharpens."""
     if ocfg.lr_schedule != "adaptive":
@@ -191,6 +207,8 @@ def train(cfg: DictConfig) -> dict:
                 base = env.base_env
                 env.transform.load_state_dict(adapt_curriculum(init["curriculum"], base.num_worlds, base.num_robots))
         carried = env.reset()
+        if cfg.collect.get("desync_episodes"):
+            carried = desync_episodes(carried, cfg.env.get("max_episode_steps"))
         if obs_norm is not None and not cfg.warm_start:
             obs_norm.update(carried[OBS])  # first statistics from the initial layouts
     logger = _make_logger(cfg, out_dir, ckpt.get("wandb_id") if ckpt else None)

@@ -319,3 +319,18 @@ def test_roll_in_takes_the_mean_then_samples_and_stays_out_of_the_loss(tmp_path)
     _train(tmp_path / "run", "total_iterations=1", "collect.roll_in_share=1.0", "collect.roll_in_max_steps=2")
     line = json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
     assert 0.0 < line["roll_in_frames"] < 1.0
+
+
+def test_desync_episodes_spreads_the_first_episode_ends():
+    cfg = _cfg("train", [*TINY, "env.num_worlds=16", "env.max_episode_steps=6"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "none", 0.98)
+    torch.manual_seed(0)
+    carried = train_recipe.desync_episodes(env.reset(), 6)
+    off = carried["step_count"].reshape(-1).clone()
+    assert 0 <= int(off.min()) and int(off.max()) < 6 and len(off.unique()) > 2
+    batch, _ = _common.collect(env, actor, carried, 6)
+    first_end = batch["next", "done"].reshape(16, 6).float().argmax(1)  # step index of each world's first end
+    assert torch.equal(first_end, 5 - off)
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        train_recipe.desync_episodes(env.reset(), None)

@@ -41,7 +41,9 @@ from plots import plot_training  # noqa: E402
 from _warm_start import adapt_curriculum, load_module, load_optimiser  # noqa: E402
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
-RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress")
+# env.nthread too: a run moved to a machine with fewer cores (MuJoCo steps each world on its own, so
+# the thread count does not change the numbers).
+RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress", "env.nthread")
 LOGGED_LOSSES = ("loss_objective", "loss_critic", "loss_entropy", "entropy", "explained_variance", "clip_fraction",
                  "kl_approx")
 
@@ -116,7 +118,7 @@ def _resume_cfg(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
     ckpt = load_checkpoint(path)
     saved = OmegaConf.create(ckpt["cfg"])
     for k in RESUME_OVERRIDES:
-        saved[k] = cfg[k]
+        OmegaConf.update(saved, k, OmegaConf.select(cfg, k), merge=False)
     saved.out_dir, saved.resume = str(path.parent), str(path)
     return saved, ckpt
 

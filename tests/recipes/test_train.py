@@ -334,3 +334,10 @@ def test_desync_episodes_spreads_the_first_episode_ends():
     assert torch.equal(first_end, 5 - off)
     with pytest.raises(ValueError, match="max_episode_steps"):
         train_recipe.desync_episodes(env.reset(), None)
+
+
+def test_resume_takes_only_the_listed_keys_from_the_command_line(tmp_path):
+    _train(tmp_path / "run", "total_iterations=1", "env.nthread=2")
+    cfg = _cfg("train", [*TINY, "env.nthread=1", "env.num_worlds=8", f"resume={tmp_path / 'run'}"])
+    saved, _ = train_recipe._resume_cfg(cfg)
+    assert saved.env.nthread == 1 and saved.env.num_worlds == 4  # moved machine; world count is the run's

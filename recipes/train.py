@@ -81,7 +81,7 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
                     sums[k] += float(out[k].detach().float().mean())
             sums["kl"] += kl
             n += 1
-    return {**{f"train/{k}": v / max(n, 1) for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
+    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}  # no sums when n == 0
 
 
 def desync_episodes(carried, max_steps):

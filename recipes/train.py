@@ -81,7 +81,8 @@ def ppo_update(batch, loss, optim, popart, cfg: DictConfig) -> dict[str, float]:
                     sums[k] += float(out[k].detach().float().mean())
             sums["kl"] += kl
             n += 1
-    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}  # no sums when n == 0
+    # n == 0 (every frame a roll-in) leaves no sums to divide.
+    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
 
 
 def desync_episodes(carried, max_steps):
@@ -178,7 +179,8 @@ def train(cfg: DictConfig) -> dict:
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
     share = float(cfg.collect.get("roll_in_share", 0.0))
-    roll_in = MeanRollIn(env.base_env.num_worlds, share, int(cfg.collect.get("roll_in_max_steps", 1))) if share else None
+    roll_in = (MeanRollIn(env.base_env.num_worlds, share, int(cfg.collect.get("roll_in_max_steps", 1)))
+               if share else None)
     if ckpt is not None:
         actor.load_state_dict(ckpt["actor"])
         critic.load_state_dict(ckpt["critic"])

@@ -2,12 +2,7 @@
 # Builds the wheel folder that lets recipes/device/train.sh run on a lent GPU machine (Python 3.12,
 # torch 2.11 preinstalled, no network). Run here, from anywhere, with network:
 #   bash recipes/device/make_wheels.sh [DEST]      DEST default .whl (relative to the repo root)
-# then call the device tool's `run` with
-#   command="bash recipes/device/train.sh resume=runs/<run> total_iterations=N env.nthread=16"
-#   carry=[".whl", "runs/<run>"]          (a fresh run: see train.sh)
-# Measured there (1024 worlds, 16384 frames per batch, env.nthread=16, OMP_NUM_THREADS=4): 2.5 s per
-# iteration on the H100 machine's 16 cores vs 5.5 s on the 2-core dev machine (env.nthread=2, OMP 2).
-# A resumed run takes env.nthread from the command line: `resume=runs/X env.nthread=2` continues it here.
+# then run recipes/device/train.sh there (its header: the `run` call, speeds, moving a run back here).
 # Idempotent: a wheel already in DEST is not fetched again. Repo + wheels must stay under 64 MiB.
 set -euo pipefail
 cd "$(dirname "$0")/../.."

@@ -39,7 +39,7 @@ from pnp.backend import Backend, MujocoBackend
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.layout import START_RANGE, sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, EPISODE_S, HL_DT, OBS_BLOCKS, BaseFrame, default_reward, geometry, observations,
+    ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, default_reward, geometry, observations,
     reward_terms, stage_conditions,
 )
 from pnp.terms import CONDITIONS, REWARD_TERMS
@@ -161,14 +161,18 @@ class PnPEnv(RobotEnvBase):
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
                  start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
-                 terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu"):
+                 terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
+                 handle_order: str = "identity"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
         if grasp_sampling not in ("threshold", "bernoulli"):
             raise ValueError(f"grasp_sampling must be 'threshold' or 'bernoulli', got {grasp_sampling!r}")
+        if handle_order not in HANDLE_ORDERS:
+            raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
         self.grasp_sampling, self.terminate_on_success = grasp_sampling, bool(terminate_on_success)
+        self.handle_order = handle_order
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
@@ -268,7 +272,7 @@ class PnPEnv(RobotEnvBase):
         g = geometry(s)
         cond = stage_conditions(s, g)
         terms = reward_terms(s, g, action, last_action, cond, frame)
-        blocks = observations(s, g, action, frame)
+        blocks = observations(s, g, action, frame, self.handle_order)
         agents = {k: blocks[k] for k in BLOCKS}
         agents["observation"] = torch.cat([blocks[k] for k in BLOCKS], -1)
         agents.update(reward_terms=terms, stage_conditions=cond, reward=default_reward(terms),

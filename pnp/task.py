@@ -39,6 +39,12 @@ FOOTPRINT_HALF = (0.45, 0.20)
 ACTION_NAMES = ("base_vx", "base_vy", "base_wz", "ee_x", "ee_y", "ee_z", "ee_yaw", "grasp")
 ACTION_LOW = (-1.0, -0.5, -1.0, 0.3, -0.6, -0.55, -1.5708, 0.0)
 ACTION_HIGH = (1.0, 0.5, 1.0, 1.3, 0.6, 0.35, 1.5708, 1.0)
+# Order of the two handles in the object block. ``own_first`` (not in the paper, ours): the
+# robot's assigned handle first; who gets which is still decided by where the policies go
+# (geometry's nearest-unless-the-other-is-nearer rule). With ``identity``, two robots
+# warm-started from one robot's policy both went to the nearest handle (the same one in
+# 90 % of steps, 360 iterations without a joint grasp; stop 16).
+HANDLE_ORDERS = ("identity", "own_first")
 OBS_BLOCKS = {"ego": 31, "goal": 3, "object": 30, "neighbour": 10}
 # Fields inside each block (slices), for scripted policies and per-field saliency.
 OBS_FIELDS = {
@@ -154,6 +160,7 @@ class Geometry:
     """Per-robot quantities every reward and condition uses (computed once per step)."""
 
     handle: torch.Tensor  # [N, R, 3] the handle nearest the robot's EE ("its" handle)
+    own: torch.Tensor  # [N, R] bool, True where its handle is handle 1
     ee_handle: torch.Tensor  # [N, R, 3] handle - EE
     align: torch.Tensor  # [N, R] |cos| of the gripper-handle angle
     bar_dist: torch.Tensor  # [N, R] EE distance to the handle bar (segment)
@@ -199,7 +206,7 @@ def geometry(s: PnPState) -> Geometry:
     bottom = s.box_pos[:, 2] - 0.5 * _dot(s.box_rot[:, 2].abs().unbind(-1), s.box_size.unbind(-1))
     gd = torch.hypot(s.box_pos[:, 0] - s.goal[:, 0], s.box_pos[:, 1] - s.goal[:, 1])
     return Geometry(
-        handle=handle, ee_handle=torch.stack(ee_handle, -1), align=align, bar_dist=bar_dist, grasped=grasped,
+        handle=handle, own=k1, ee_handle=torch.stack(ee_handle, -1), align=align, bar_dist=bar_dist, grasped=grasped,
         box_lift=bottom, box_goal_dist=gd, box_in_goal=gd < GOAL_RADIUS, box_on_floor=bottom < ON_FLOOR,
         fell=s.base_z < FALL_HEIGHT,
     )
@@ -324,9 +331,14 @@ def ego_block(s: PnPState, frame: BaseFrame, last_action: torch.Tensor, ee=None,
     return torch.cat([small[..., :3], s.arm_q, s.arm_qd * 0.1, small[..., 3:], last_action], -1)
 
 
-def observations(s: PnPState, g: Geometry, last_action: torch.Tensor,
-                 frame: BaseFrame | None = None) -> dict[str, torch.Tensor]:
-    """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`)."""
+def observations(s: PnPState, g: Geometry, last_action: torch.Tensor, frame: BaseFrame | None = None,
+                 handle_order: str = "identity") -> dict[str, torch.Tensor]:
+    """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`).
+
+    ``handle_order``: ``identity`` lists handle 0 then 1; ``own_first`` lists the robot's
+    handle (:func:`geometry`'s, the one its handle terms reward) first. With identity order
+    two robots settled on one handle (see :data:`HANDLE_ORDERS`).
+    """
     # Built from [N, R] / [N, 1] component columns, stacked once per block.
     frame = frame or BaseFrame(s)
     N, R = s.ee_pos.shape[:2]
@@ -337,6 +349,10 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor,
     goal = _stack([gx, gy, torch.hypot(gx, gy)], N, R)
     h = handles(s)
     h_b = [frame.point_xyz(*h[:, None, k].unbind(-1)) for k in range(2)]
+    if handle_order == "own_first":
+        h_b = [[torch.where(g.own, b, a) for a, b in zip(*h_b)], [torch.where(g.own, a, b) for a, b in zip(*h_b)]]
+    elif handle_order != "identity":
+        raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
     axes_vel = []  # box x, y axes (columns of box_rot), linear and angular velocity
     for v in (s.box_rot[:, None, :, 0], s.box_rot[:, None, :, 1], s.box_vel[:, None, :3], s.box_vel[:, None, 3:]):
         axes_vel += [*frame.rotate_xy(v[..., 0], v[..., 1]), v[..., 2]]

@@ -89,6 +89,7 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
                       start_range=tuple(env_cfg.get("start_range") or START_RANGE),
                       grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),
                       terminate_on_success=bool(env_cfg.get("terminate_on_success", True)),
+                      handle_order=str(env_cfg.get("handle_order", "identity")),
                       box_assets={None: None, "single": SINGLE_ROBOT_BOXES, "dual": DUAL_ROBOT_BOXES}[boxes])
     else:
         if int(env_cfg.num_robots) != 1:

@@ -73,7 +73,7 @@ def geometry(s: PnPState) -> Geometry:
     bottom = s.box_pos[:, 2] - _half_height(s)
     gd = (s.box_pos[:, :2] - s.goal).norm(dim=-1)
     return Geometry(
-        handle=handle, ee_handle=ee_handle, align=align, bar_dist=bar_dist, grasped=grasped,
+        handle=handle, own=k == 1, ee_handle=ee_handle, align=align, bar_dist=bar_dist, grasped=grasped,
         box_lift=bottom, box_goal_dist=gd, box_in_goal=gd < GOAL_RADIUS, box_on_floor=bottom < ON_FLOOR,
         fell=s.base_z < FALL_HEIGHT,
     )

@@ -40,7 +40,7 @@ from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.layout import START_RANGE, sample_layout
 from pnp.task import (
     ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, default_reward, geometry, observations,
-    reward_terms, stage_conditions,
+    reward_terms, stage_conditions, update_claims,
 )
 from pnp.terms import CONDITIONS, REWARD_TERMS
 
@@ -136,6 +136,7 @@ class RobotEnvBase(EnvBase):
         """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
         st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
         st.update({k: getattr(self, k).clone() for k in self._STATE})
+        st["_claim"] = self._claim.clone()
         st["rng"] = self._rng.get_state()
         st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
         return st
@@ -147,6 +148,7 @@ class RobotEnvBase(EnvBase):
         self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
         for k in self._STATE:
             setattr(self, k, state[k].clone())
+        self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
         self._rng.set_state(state["rng"])
         self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
 
@@ -162,7 +164,7 @@ class PnPEnv(RobotEnvBase):
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
                  start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
-                 handle_order: str = "identity"):
+                 handle_order: str = "identity", handle_claim: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if num_worlds < 1:
@@ -173,6 +175,8 @@ class PnPEnv(RobotEnvBase):
             raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
         self.grasp_sampling, self.terminate_on_success = grasp_sampling, bool(terminate_on_success)
         self.handle_order = handle_order
+        # Two robots: a robot keeps the handle it got ready on (pnp.task.update_claims).
+        self.handle_claim = bool(handle_claim) and num_robots == 2
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
@@ -187,6 +191,7 @@ class PnPEnv(RobotEnvBase):
         self._steps = torch.zeros(N, dtype=torch.long)
         self._was_lifted = torch.zeros(N, dtype=torch.bool)
         self._success_step = torch.full((N,), -1, dtype=torch.long)
+        self._claim = torch.full((N, R), -1, dtype=torch.long)
         self.clipped_count = 0  # (world, robot) actions clipped since construction
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
@@ -227,6 +232,7 @@ class PnPEnv(RobotEnvBase):
         self._steps[ids] = 0
         self._was_lifted[ids] = False
         self._success_step[ids] = -1
+        self._claim[ids] = -1
 
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -269,8 +275,10 @@ class PnPEnv(RobotEnvBase):
             closed = (action[..., 7] > 0.5).float()
         s = self.backend.state(self._goal, self._init_goal_dist, closed)
         frame = BaseFrame(s)  # each robot's base frame, shared by the terms and the observations
-        g = geometry(s)
+        g = geometry(s, self._claim if self.handle_claim else None)
         cond = stage_conditions(s, g)
+        if self.handle_claim:
+            self._claim = update_claims(self._claim, g, cond)
         terms = reward_terms(s, g, action, last_action, cond, frame)
         blocks = observations(s, g, action, frame, self.handle_order)
         agents = {k: blocks[k] for k in BLOCKS}

@@ -28,6 +28,7 @@ LIFT_HEIGHT = 0.1  # m, box bottom above the floor for "object lifted"
 ON_FLOOR = 0.03  # m, box bottom below this counts as on the floor
 READY_XY = 0.05  # m, EE horizontally within this of its handle for "gripper ready"
 READY_Z = (-0.03, 0.25)  # m, EE height above the handle axis for "gripper ready"
+CLAIM_KEEP = 0.25  # m, EE xy distance within which a robot keeps its claimed handle (update_claims)
 READY_ALIGN = 0.9  # |cos| of the gripper-handle angle for "gripper ready"
 GRASP_DIST = 0.035  # m, EE to the handle bar for a grasp
 FALL_HEIGHT = 0.35  # m, base below this counts as a fall
@@ -172,7 +173,10 @@ class Geometry:
     fell: torch.Tensor  # [N, R] bool
 
 
-def geometry(s: PnPState) -> Geometry:
+def geometry(s: PnPState, claim: torch.Tensor | None = None) -> Geometry:
+    """Task geometry; ``claim`` [N, R] (handle index, -1 for none; two robots only) overrides
+    the nearest-handle rule: a claimed handle is its claimer's, the other robot gets the other
+    (see :func:`update_claims`)."""
     N, R = s.ee_pos.shape[:2]
     h = handles(s)  # [N, 2, 3]
     # Vectors as components; world quantities are [N, 1] columns broadcasting over robots.
@@ -191,6 +195,9 @@ def geometry(s: PnPState) -> Geometry:
         own = torch.where(k1, dd1, dd0)
         conflict = (k1[:, 0] == k1[:, 1]).unsqueeze(1)
         k1 = k1 ^ (conflict & torch.stack([own[:, 0] > own[:, 1], own[:, 1] >= own[:, 0]], 1))
+        if claim is not None:
+            theirs = claim.flip(1)
+            k1 = torch.where(claim >= 0, claim == 1, torch.where(theirs >= 0, theirs == 0, k1))
     ee_handle = [torch.where(k1, a, b) for a, b in zip(d1, d0)]
     handle = _stack([torch.where(k1, a, b) for a, b in zip(h1, h0)], N, R)
     bar_axis = s.box_rot[:, None, :, 1].unbind(-1)  # box y axis
@@ -210,6 +217,18 @@ def geometry(s: PnPState) -> Geometry:
         box_lift=bottom, box_goal_dist=gd, box_in_goal=gd < GOAL_RADIUS, box_on_floor=bottom < ON_FLOOR,
         fell=s.base_z < FALL_HEIGHT,
     )
+
+
+def update_claims(claim: torch.Tensor, g: Geometry, cond: torch.Tensor) -> torch.Tensor:
+    """Claims after this step (ours, not in the paper; ``env.handle_claim``). A robot claims
+    its handle when it gets "gripper ready" on it or grasps it, and keeps it while it holds it
+    or its EE stays within :data:`CLAIM_KEEP` (xy). Without claims, two robots at one handle
+    swapped it back and forth as each came nearer, and neither got the other's "ready" (stop
+    16). Who claims which is still up to the policies: whoever gets ready first."""
+    xy = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
+    keep = (claim >= 0) & ((xy < CLAIM_KEEP) | g.grasped)
+    new = (claim < 0) & (cond[..., 0] | g.grasped)
+    return torch.where(keep, claim, torch.where(new, g.own.long(), torch.full_like(claim, -1)))
 
 
 def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
@@ -349,13 +368,16 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor, frame: Bas
     goal = _stack([gx, gy, torch.hypot(gx, gy)], N, R)
     h = handles(s)
     h_b = [frame.point_xyz(*h[:, None, k].unbind(-1)) for k in range(2)]
-    if handle_order == "own_first":
-        h_b = [[torch.where(g.own, b, a) for a, b in zip(*h_b)], [torch.where(g.own, a, b) for a, b in zip(*h_b)]]
-    elif handle_order != "identity":
-        raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
     axes_vel = []  # box x, y axes (columns of box_rot), linear and angular velocity
     for v in (s.box_rot[:, None, :, 0], s.box_rot[:, None, :, 1], s.box_vel[:, None, :3], s.box_vel[:, None, 3:]):
         axes_vel += [*frame.rotate_xy(v[..., 0], v[..., 1]), v[..., 2]]
+    if handle_order == "own_first":
+        # The box turned half a turn about its z axis (it is symmetric): its x axis then
+        # points at the robot's handle, as it points at handle 0 in identity order.
+        h_b = [[torch.where(g.own, b, a) for a, b in zip(*h_b)], [torch.where(g.own, a, b) for a, b in zip(*h_b)]]
+        axes_vel[:6] = [torch.where(g.own, -a, a) for a in axes_vel[:6]]
+    elif handle_order != "identity":
+        raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
     obj = _stack([
         *frame.point_xyz(*s.box_pos[:, None].unbind(-1)), *axes_vel, *h_b[0], *h_b[1],
         *(a - b for a, b in zip(h_b[0], ee)), *(a - b for a, b in zip(h_b[1], ee)), *s.box_size[:, None].unbind(-1),

@@ -90,6 +90,7 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
                       grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),
                       terminate_on_success=bool(env_cfg.get("terminate_on_success", True)),
                       handle_order=str(env_cfg.get("handle_order", "identity")),
+                      handle_claim=bool(env_cfg.get("handle_claim", False)),
                       box_assets={None: None, "single": SINGLE_ROBOT_BOXES, "dual": DUAL_ROBOT_BOXES}[boxes])
     else:
         if int(env_cfg.num_robots) != 1:

@@ -45,7 +45,53 @@ def test_own_first_lists_the_assigned_handle_first():
     assert torch.equal(own[0, first], ident[0, second]) and torch.equal(own[0, second], ident[0, first])
     F = T.OBS_FIELDS["object"]["handles_from_ee"]
     assert torch.equal(own[0, F.start:F.start + 3], ident[0, F.start + 3:F.stop])
-    rest = [i for i in range(own.shape[-1]) if not (H.start <= i < F.stop)]
-    assert torch.equal(own[:, rest], ident[:, rest])
+    X, Y = T.OBS_FIELDS["object"]["box_x_axis"], T.OBS_FIELDS["object"]["box_y_axis"]
+    assert torch.equal(own[0, X], -ident[0, X]) and torch.equal(own[0, Y], -ident[0, Y])  # box turned half a turn
+    P = T.OBS_FIELDS["object"]["box_pos"]
+    for o in (own, ident):  # the first handle lies along the (listed) box x axis from its centre
+        assert ((o[:, first] - o[:, P]) * o[:, X]).sum(-1).gt(0).all()
+    flipped = set(range(H.start, F.stop)) | set(range(X.start, Y.stop))
+    rest = [i for i in range(own.shape[-1]) if i not in flipped]
+    assert torch.equal(own[:, rest], ident[:, rest]) and torch.equal(own[1], ident[1])
     with pytest.raises(ValueError, match="nearest"):
         T.observations(s, g, act, handle_order="nearest")
+
+
+
+def test_a_claimed_handle_stays_its_claimers():
+    _, h = _handles_of([[0.0, 0.0, 0.0]])
+    x, z = float(h[0, 0]), float(h[0, 2])
+    s = _state([[-3.0, 0.0, 0.0], [3.0, 0.0, 0.0]], (0.0, 0.0, 0.0))
+    s.ee_pos = torch.tensor([[[x + 0.02, 0.0, z + 0.1], [x + 0.3, 0.0, z]]])  # robot 0 over handle 0
+    none = torch.full((1, 2), -1)
+    ready = torch.zeros(1, 2, len(T.CONDITIONS), dtype=torch.bool)
+    assert T.update_claims(none, T.geometry(s, none), ready).tolist() == [[-1, -1]]  # not ready: no claim
+    ready[0, 0, 0] = True
+    claim = T.update_claims(none, T.geometry(s, none), ready)
+    assert claim.tolist() == [[0, -1]]
+    s.ee_pos = torch.tensor([[[x + 0.1, 0.0, z + 0.1], [x + 0.01, 0.0, z]]])  # robot 1 now nearer to handle 0
+    assert T.geometry(s).own.tolist() == [[True, False]]  # without claims robot 1 takes handle 0
+    g = T.geometry(s, claim)
+    assert g.own.tolist() == [[False, True]]  # robot 0's claim holds it
+    assert T.update_claims(claim, g, ready * False).tolist() == [[0, -1]]  # kept within CLAIM_KEEP
+    s.ee_pos = torch.tensor([[[x + 0.6, 0.0, z + 0.1], [x + 0.01, 0.0, z]]])  # robot 0 walked off
+    assert T.update_claims(claim, T.geometry(s, claim), ready * False).tolist() == [[-1, -1]]
+
+
+def test_env_claims_stay_distinct_under_the_scripted_pair():
+    from envs.pnp_env import PnPEnv
+    from pnp.scripted import ScriptedPnP
+
+    env = PnPEnv(num_worlds=4, num_robots=2, backend="kinematic", seed=0, nthread=1, handle_claim=True)
+    pol, td = ScriptedPnP(4, 2), env.reset()
+    claimed = torch.zeros(4, 2, dtype=torch.bool)
+    for _ in range(250):
+        td = env.step(pol(td))
+        c = env._claim
+        claimed |= c >= 0
+        assert ((c >= -1) & (c <= 1)).all() and not ((c[:, 0] >= 0) & (c[:, 0] == c[:, 1])).any()
+        td = env.step_mdp(td)
+    assert claimed.all()
+    st = env.get_state()
+    env.set_state(st)
+    assert torch.equal(env._claim, st["_claim"])

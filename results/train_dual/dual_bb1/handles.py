@@ -18,12 +18,13 @@ env = _common.make_env(cfg.env, cfg.curriculum, 7)
 actor, *_ = _common.make_models(cfg.model, env, "popart", 0.98)
 load_module(actor, ck["actor"])
 grasped_ever = torch.zeros(W, 2, dtype=torch.bool); both_ever = torch.zeros(W, dtype=torch.bool)
-lifted = torch.zeros(W, dtype=torch.bool); same = torch.zeros(W); both_close = torch.zeros(W); grasp_steps = torch.zeros(W, 2)
+lifted = torch.zeros(W, dtype=torch.bool); ready_ever = torch.zeros(W, 2, dtype=torch.bool); ready_both = lifted.clone(); same = torch.zeros(W); both_close = torch.zeros(W); grasp_steps = torch.zeros(W, 2)
 with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC if mode == "det" else InteractionType.RANDOM):
     td = env.reset()
     for t in range(steps):
         td = env.step(actor(td)); n = td["next"]
         c = n["agents", "stage_conditions"]; g = c[..., 1]
+        ready_ever |= c[..., 0]; ready_both |= c[..., 0].all(-1);
         grasped_ever |= g; both_ever |= g.all(-1); lifted |= c[..., 2].any(-1); grasp_steps += g
         # World-frame handles (the object block's order depends on env.handle_order).
         base = env.base_env
@@ -34,7 +35,8 @@ with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC if mode
         both_close += (d.min(-1).values < 0.15).all(-1).float()
         td = env.step_mdp(td)
 out = {"checkpoint": sys.argv[1], "iteration": ck["counters"]["iteration"], "mode": mode, "worlds": W, "steps": steps, "seed": 7,
-       "robot_grasped_ever": grasped_ever.float().mean().item(), "world_both_grasped_at_once": both_ever.float().mean().item(),
+       "robot_ready_ever": ready_ever.float().mean().item(), "world_both_ready_at_once": ready_both.float().mean().item(),
+       "world_both_ready_at_some_time": ready_ever.all(-1).float().mean().item(), "robot_grasped_ever": grasped_ever.float().mean().item(), "world_both_grasped_at_once": both_ever.float().mean().item(),
        "world_both_grasped_at_some_time": grasped_ever.all(-1).float().mean().item(), "world_lifted": lifted.float().mean().item(),
        "grasp_steps_per_robot": grasp_steps.mean().item(), "share_of_steps_nearest_handle_same": (same / steps).mean().item(),
        "steps_both_within_15cm_of_a_handle": both_close.mean().item(),

@@ -175,8 +175,8 @@ class PnPEnv(RobotEnvBase):
             raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
         self.grasp_sampling, self.terminate_on_success = grasp_sampling, bool(terminate_on_success)
         self.handle_order = handle_order
-        # Two robots: a robot keeps the handle it got ready on (pnp.task.update_claims).
-        self.handle_claim = bool(handle_claim) and num_robots == 2
+        # Each robot keeps the handle it was given at the episode start (pnp.task.update_claims).
+        self.handle_claim = bool(handle_claim)
         super().__init__(batch_size=torch.Size([num_worlds]), device=device)
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
@@ -278,7 +278,7 @@ class PnPEnv(RobotEnvBase):
         g = geometry(s, self._claim if self.handle_claim else None)
         cond = stage_conditions(s, g)
         if self.handle_claim:
-            self._claim = update_claims(self._claim, g, cond)
+            self._claim = update_claims(self._claim, g)
         terms = reward_terms(s, g, action, last_action, cond, frame)
         blocks = observations(s, g, action, frame, self.handle_order)
         agents = {k: blocks[k] for k in BLOCKS}

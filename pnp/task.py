@@ -28,7 +28,6 @@ LIFT_HEIGHT = 0.1  # m, box bottom above the floor for "object lifted"
 ON_FLOOR = 0.03  # m, box bottom below this counts as on the floor
 READY_XY = 0.05  # m, EE horizontally within this of its handle for "gripper ready"
 READY_Z = (-0.03, 0.25)  # m, EE height above the handle axis for "gripper ready"
-CLAIM_KEEP = 0.25  # m, EE xy distance within which a robot keeps its claimed handle (update_claims)
 READY_ALIGN = 0.9  # |cos| of the gripper-handle angle for "gripper ready"
 GRASP_DIST = 0.035  # m, EE to the handle bar for a grasp
 FALL_HEIGHT = 0.35  # m, base below this counts as a fall
@@ -40,12 +39,12 @@ FOOTPRINT_HALF = (0.45, 0.20)
 ACTION_NAMES = ("base_vx", "base_vy", "base_wz", "ee_x", "ee_y", "ee_z", "ee_yaw", "grasp")
 ACTION_LOW = (-1.0, -0.5, -1.0, 0.3, -0.6, -0.55, -1.5708, 0.0)
 ACTION_HIGH = (1.0, 0.5, 1.0, 1.3, 0.6, 0.35, 1.5708, 1.0)
-# Order of the two handles in the object block. ``own_first`` (not in the paper, ours): the
-# robot's assigned handle first; who gets which is still decided by where the policies go
-# (geometry's nearest-unless-the-other-is-nearer rule). With ``identity``, two robots
-# warm-started from one robot's policy both went to the nearest handle (the same one in
-# 90 % of steps, 360 iterations without a joint grasp; stop 16).
-HANDLE_ORDERS = ("identity", "own_first")
+# Order of the two handles in the object block (``own_*`` are ours, not the paper's):
+# ``identity`` handle 0 then 1; ``own_first`` / ``own_last`` the robot's handle (geometry's)
+# first / last. Why: the one-robot policy warm-started into the dual task went to handle 1
+# in 100 % of its episodes, so two of them met at one handle (90 % of steps, no joint grasp
+# in 371 iterations); listed last, a robot's own handle is where that habit takes it (stop 16).
+HANDLE_ORDERS = ("identity", "own_first", "own_last")
 OBS_BLOCKS = {"ego": 31, "goal": 3, "object": 30, "neighbour": 10}
 # Fields inside each block (slices), for scripted policies and per-field saliency.
 OBS_FIELDS = {
@@ -174,9 +173,8 @@ class Geometry:
 
 
 def geometry(s: PnPState, claim: torch.Tensor | None = None) -> Geometry:
-    """Task geometry; ``claim`` [N, R] (handle index, -1 for none; two robots only) overrides
-    the nearest-handle rule: a claimed handle is its claimer's, the other robot gets the other
-    (see :func:`update_claims`)."""
+    """Task geometry; ``claim`` [N, R] (handle index, -1 for none) overrides the nearest-handle
+    rule where set (see :func:`update_claims`)."""
     N, R = s.ee_pos.shape[:2]
     h = handles(s)  # [N, 2, 3]
     # Vectors as components; world quantities are [N, 1] columns broadcasting over robots.
@@ -195,9 +193,8 @@ def geometry(s: PnPState, claim: torch.Tensor | None = None) -> Geometry:
         own = torch.where(k1, dd1, dd0)
         conflict = (k1[:, 0] == k1[:, 1]).unsqueeze(1)
         k1 = k1 ^ (conflict & torch.stack([own[:, 0] > own[:, 1], own[:, 1] >= own[:, 0]], 1))
-        if claim is not None:
-            theirs = claim.flip(1)
-            k1 = torch.where(claim >= 0, claim == 1, torch.where(theirs >= 0, theirs == 0, k1))
+    if claim is not None:
+        k1 = torch.where(claim >= 0, claim == 1, k1)
     ee_handle = [torch.where(k1, a, b) for a, b in zip(d1, d0)]
     handle = _stack([torch.where(k1, a, b) for a, b in zip(h1, h0)], N, R)
     bar_axis = s.box_rot[:, None, :, 1].unbind(-1)  # box y axis
@@ -219,16 +216,15 @@ def geometry(s: PnPState, claim: torch.Tensor | None = None) -> Geometry:
     )
 
 
-def update_claims(claim: torch.Tensor, g: Geometry, cond: torch.Tensor) -> torch.Tensor:
-    """Claims after this step (ours, not in the paper; ``env.handle_claim``). A robot claims
-    its handle when it gets "gripper ready" on it or grasps it, and keeps it while it holds it
-    or its EE stays within :data:`CLAIM_KEEP` (xy). Without claims, two robots at one handle
-    swapped it back and forth as each came nearer, and neither got the other's "ready" (stop
-    16). Who claims which is still up to the policies: whoever gets ready first."""
-    xy = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
-    keep = (claim >= 0) & ((xy < CLAIM_KEEP) | g.grasped)
-    new = (claim < 0) & (cond[..., 0] | g.grasped)
-    return torch.where(keep, claim, torch.where(new, g.own.long(), torch.full_like(claim, -1)))
+def update_claims(claim: torch.Tensor, g: Geometry) -> torch.Tensor:
+    """Claims after this step (ours, not in the paper; ``env.handle_claim``): a robot without
+    one (just reset) claims the handle :func:`geometry` gives it, and keeps it for the episode.
+    Why: the nearest handle flips whenever the EE crosses the line halfway between the
+    handles (13399 flips in 38400 robot-steps of the one-robot policy), so a handle order or
+    reward target that follows it jumps back and forth; and two robots at one handle
+    swapped it as each came nearer (stop 16). Who takes which is then set by where the
+    robots start (the farther of two at one handle takes the other), not chosen later."""
+    return torch.where(claim >= 0, claim, g.own.long())
 
 
 def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
@@ -354,9 +350,9 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor, frame: Bas
                  handle_order: str = "identity") -> dict[str, torch.Tensor]:
     """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`).
 
-    ``handle_order``: ``identity`` lists handle 0 then 1; ``own_first`` lists the robot's
-    handle (:func:`geometry`'s, the one its handle terms reward) first. With identity order
-    two robots settled on one handle (see :data:`HANDLE_ORDERS`).
+    ``handle_order``: ``identity`` lists handle 0 then 1; ``own_first`` / ``own_last`` list
+    the robot's handle (:func:`geometry`'s, the one its handle terms reward) first / last
+    (see :data:`HANDLE_ORDERS`).
     """
     # Built from [N, R] / [N, 1] component columns, stacked once per block.
     frame = frame or BaseFrame(s)
@@ -371,11 +367,12 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor, frame: Bas
     axes_vel = []  # box x, y axes (columns of box_rot), linear and angular velocity
     for v in (s.box_rot[:, None, :, 0], s.box_rot[:, None, :, 1], s.box_vel[:, None, :3], s.box_vel[:, None, 3:]):
         axes_vel += [*frame.rotate_xy(v[..., 0], v[..., 1]), v[..., 2]]
-    if handle_order == "own_first":
-        # The box turned half a turn about its z axis (it is symmetric): its x axis then
-        # points at the robot's handle, as it points at handle 0 in identity order.
-        h_b = [[torch.where(g.own, b, a) for a, b in zip(*h_b)], [torch.where(g.own, a, b) for a, b in zip(*h_b)]]
-        axes_vel[:6] = [torch.where(g.own, -a, a) for a in axes_vel[:6]]
+    if handle_order in ("own_first", "own_last"):
+        # Listed as if the box were turned half a turn about its z axis (it is symmetric), so
+        # the listing stays a real box pose: its x axis points at the first-listed handle.
+        swap = g.own if handle_order == "own_first" else ~g.own
+        h_b = [[torch.where(swap, b, a) for a, b in zip(*h_b)], [torch.where(swap, a, b) for a, b in zip(*h_b)]]
+        axes_vel[:6] = [torch.where(swap, -a, a) for a in axes_vel[:6]]
     elif handle_order != "identity":
         raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
     obj = _stack([

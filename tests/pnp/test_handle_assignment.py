@@ -53,8 +53,12 @@ def test_own_first_lists_the_assigned_handle_first():
     flipped = set(range(H.start, F.stop)) | set(range(X.start, Y.stop))
     rest = [i for i in range(own.shape[-1]) if i not in flipped]
     assert torch.equal(own[:, rest], ident[:, rest]) and torch.equal(own[1], ident[1])
+    last = T.observations(s, g, act, handle_order="own_last")["object"][0]
+    assert torch.equal(last[0], ident[0])  # robot 0's handle is 1: already last
+    assert torch.equal(last[1, first], ident[1, second]) and torch.equal(last[1, X], -ident[1, X])
     with pytest.raises(ValueError, match="nearest"):
         T.observations(s, g, act, handle_order="nearest")
+
 
 
 
@@ -62,20 +66,18 @@ def test_a_claimed_handle_stays_its_claimers():
     _, h = _handles_of([[0.0, 0.0, 0.0]])
     x, z = float(h[0, 0]), float(h[0, 2])
     s = _state([[-3.0, 0.0, 0.0], [3.0, 0.0, 0.0]], (0.0, 0.0, 0.0))
-    s.ee_pos = torch.tensor([[[x + 0.02, 0.0, z + 0.1], [x + 0.3, 0.0, z]]])  # robot 0 over handle 0
+    s.ee_pos = torch.tensor([[[x + 0.1, 0.0, z + 0.1], [x + 0.3, 0.0, z]]])  # robot 0 nearer to handle 0
     none = torch.full((1, 2), -1)
-    ready = torch.zeros(1, 2, len(T.CONDITIONS), dtype=torch.bool)
-    assert T.update_claims(none, T.geometry(s, none), ready).tolist() == [[-1, -1]]  # not ready: no claim
-    ready[0, 0, 0] = True
-    claim = T.update_claims(none, T.geometry(s, none), ready)
-    assert claim.tolist() == [[0, -1]]
+    claim = T.update_claims(none, T.geometry(s, none))
+    assert claim.tolist() == [[0, 1]]  # the farther of two at one handle takes the other
     s.ee_pos = torch.tensor([[[x + 0.1, 0.0, z + 0.1], [x + 0.01, 0.0, z]]])  # robot 1 now nearer to handle 0
-    assert T.geometry(s).own.tolist() == [[True, False]]  # without claims robot 1 takes handle 0
+    assert T.geometry(s).own.tolist() == [[True, False]]  # without claims it would take handle 0
     g = T.geometry(s, claim)
-    assert g.own.tolist() == [[False, True]]  # robot 0's claim holds it
-    assert T.update_claims(claim, g, ready * False).tolist() == [[0, -1]]  # kept within CLAIM_KEEP
-    s.ee_pos = torch.tensor([[[x + 0.6, 0.0, z + 0.1], [x + 0.01, 0.0, z]]])  # robot 0 walked off
-    assert T.update_claims(claim, T.geometry(s, claim), ready * False).tolist() == [[-1, -1]]
+    assert g.own.tolist() == [[False, True]]  # with them each keeps its own
+    assert torch.equal(T.update_claims(claim, g), claim)
+    one = _state([[-3.0, 0.0, 0.0]], (0.0, 0.0, 0.0))
+    one.ee_pos = torch.tensor([[[-x + 0.1, 0.0, z]]])  # one robot: its handle is fixed too
+    assert T.geometry(one, torch.tensor([[0]])).own.tolist() == [[False]] and T.geometry(one).own.tolist() == [[True]]
 
 
 def test_env_claims_stay_distinct_under_the_scripted_pair():

@@ -161,6 +161,7 @@ class KinematicParams:
     grasp_align: float = GRASP_ALIGN
     gravity: float = GRAVITY
     box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
+    lone_holder_pinned: bool = False  # True: two robots; a lone holder's EE cannot rise off the resting box
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -249,6 +250,12 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     wx, wy, wzc, dr2 = wx * f, wy * f, wzc * f, dr2 * f2
     # A held box stays above the floor: EE height >= c/2 - (box z - EE z at grasp).
     wzc = torch.where(grasp, torch.maximum(wzc, st["min_wz"] - st["rel_z"]), wzc)
+    if p.lone_holder_pinned:
+        # The heavy box outweighs one arm: a lone holder's EE stays at the height the box
+        # rests at, so it keeps its grasp while it waits (else lifting alone slid the EE off
+        # the bar, and two robots never held at once; stop 16).
+        lone = grasp & ~(grasp.flip(1) & (st["handle"] != st["handle"].flip(1)))
+        wzc = torch.where(lone, torch.minimum(wzc, st["min_wz"] - st["rel_z"]), wzc)
     # Closed-form IK (see arm_ik), then the joint rate limit and the joint ranges.
     c3 = ((torch.addcmul(dr2, wzc, wzc) - (L1 * L1 + L2 * L2)) * (1.0 / (2 * L1 * L2))).clamp(-1.0, 1.0)
     q3 = -torch.acos(c3)
@@ -367,13 +374,14 @@ class KinematicBackend(Backend):
 
     def __init__(self, num_worlds: int, num_robots: int, ee_tau: float = EE_TAU, finger_speed: float = FINGER_SPEED,
                  dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN,
-                 box_blocks_base: bool = False):
+                 box_blocks_base: bool = False, lone_holder_pinned: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         self.num_worlds, self.num_robots = N, R = num_worlds, num_robots
         self.params = KinematicParams(dt=float(dt), ee_tau=float(ee_tau), finger_speed=float(finger_speed),
                                       grasp_dist=float(grasp_dist), grasp_align=float(grasp_align),
-                                      box_blocks_base=bool(box_blocks_base))
+                                      box_blocks_base=bool(box_blocks_base),
+                                      lone_holder_pinned=bool(lone_holder_pinned) and num_robots == 2)
         f = dict(dtype=torch.float32)
         lim = torch.tensor(ARM_RANGES, **f)
         self.q_default = torch.tensor(ARM_DEFAULT, **f)

@@ -82,9 +82,9 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
         backend = str(env_cfg.backend)
         # Kinematic only (MuJoCo has real contacts): ignored elsewhere, so a run trained with it
         # still evaluates on MuJoCo.
-        blocks = backend == "kinematic" and bool(env_cfg.get("box_blocks_base"))
+        kin = {k: True for k in ("box_blocks_base", "lone_holder_pinned") if env_cfg.get(k)}
         base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
-                      backend=backend, backend_options={"box_blocks_base": True} if blocks else None,
+                      backend=backend, backend_options=(kin or None) if backend == "kinematic" else None,
                       seed=int(seed), nthread=env_cfg.get("nthread"),
                       start_range=tuple(env_cfg.get("start_range") or START_RANGE),
                       grasp_sampling=str(env_cfg.get("grasp_sampling", "threshold")),

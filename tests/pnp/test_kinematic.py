@@ -321,6 +321,33 @@ def test_dual_lift_needs_both_robots():
     assert not b.grasp.any()
 
 
+
+@pytest.mark.parametrize("pinned", [False, True])
+def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
+    box = DUAL_ROBOT_BOXES[0]
+    b = KinematicBackend(1, 2, lone_holder_pinned=pinned)
+    b.reset(torch.arange(1), _layout(1, 2, box, box_xy=(1.30, 0.0)))
+    hz = _handle_z_base(box)
+    a = _action(1, 2, ee=(0.75, 0.0, hz), yaw=torch.tensor([[math.pi / 2, math.pi / 2]]))
+    a[0, 1, 3] = 0.4  # robot 1 stays off its handle
+    _steps(b, a, 10)
+    a[0, 0, 7] = 1.0
+    _steps(b, a, 3)
+    assert b.grasp[0].tolist() == [True, False]
+    a[0, 0, 5] = hz + 0.25  # robot 0 tries to lift alone
+    _steps(b, a, 10)
+    assert b.grasp[0, 0].item() == pinned
+    assert b.box_pos[0, 2].item() == pytest.approx(box.size[2] / 2, abs=1e-6)  # the box stays down either way
+    if pinned:  # the partner grasps too: now they lift together
+        a[0, 0, 5], a[0, 1, 3] = hz, 0.75
+        _steps(b, a, 10)
+        a[0, 1, 7] = 1.0
+        _steps(b, a, 3)
+        a[..., 5] = hz + 0.25
+        _steps(b, a, 10)
+        assert b.grasp.all() and b.box_pos[0, 2] > box.size[2] / 2 + 0.2
+
+
 # --- the task, end to end --------------------------------------------------------------------------
 def test_scripted_policy_succeeds():
     n = 16

@@ -195,21 +195,26 @@ class AgentNet(nn.Module):
 
 
 class ScaleFloor(nn.Module):
-    """Lower bounds on the policy's pre-tanh std, per action entry, around a param extractor.
+    """Bounds on the policy's pre-tanh std, per action entry, around a param extractor.
 
-    Why: PPO moves the mean by a fraction of the std per iteration, so an entry whose std
-    has collapsed barely moves. The grasp probability needs to move from "keep open" to
-    "close and hold" long after the arm's entries have sharpened (model.grasp_min_scale).
+    Why the floor: PPO moves the mean by a fraction of the std per iteration, so an entry
+    whose std has collapsed barely moves. The grasp probability needs to move from "keep
+    open" to "close and hold" long after the arm's entries have sharpened
+    (model.grasp_min_scale). Why the ceiling (model.max_scale): with no entropy term two
+    dual-robot runs grew the std from ~0.4 to 1-42, every squashed command became a coin
+    flip between its bounds, and the learned approach was lost (results/train_dual/NOTES.md).
     """
 
-    def __init__(self, extractor: nn.Module, floor: torch.Tensor):
+    def __init__(self, extractor: nn.Module, floor: torch.Tensor, ceiling: torch.Tensor | None = None):
         super().__init__()
         self.extractor = extractor
         self.register_buffer("floor", floor, persistent=False)  # config, not state
+        self.register_buffer("ceiling", ceiling, persistent=False)
 
     def forward(self, x: torch.Tensor):
         loc, scale = self.extractor(x)
-        return loc, torch.maximum(scale, self.floor)
+        scale = torch.maximum(scale, self.floor)
+        return loc, scale if self.ceiling is None else torch.minimum(scale, self.ceiling)
 
 
 class PopArt(nn.Module):
@@ -274,8 +279,14 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
     head = NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}")
     floor = torch.full((spec.shape[-1],), float(model_cfg.get("min_scale", 0.0)))
     floor[GRASP_ENTRY] = max(float(floor[GRASP_ENTRY]), float(model_cfg.get("grasp_min_scale", 0.0)))
-    if (floor > 0).any():
-        head = ScaleFloor(head, floor)
+    ceiling = None
+    if model_cfg.get("max_scale") is not None:
+        ceiling = torch.full_like(floor, float(model_cfg.max_scale))
+        ceiling[GRASP_ENTRY] = math.inf  # the Bernoulli gripper's entry is a probability, not a std
+        if (ceiling < floor).any():
+            raise ValueError(f"model.max_scale={model_cfg.max_scale} is below the std floor {floor.max().item()}")
+    if (floor > 0).any() or ceiling is not None:
+        head = ScaleFloor(head, floor, ceiling)
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
                          head=head)
     dist_kwargs = {"low": spec.space.low, "high": spec.space.high}

@@ -87,3 +87,18 @@ def test_env_box_blocks_base_reaches_the_kinematic_backend_only():
     assert _common.make_env(cfg.env, cfg.curriculum, 0).base_env.backend.params.box_blocks_base
     cfg = _cfg("train", ["env.backend=kinematic", "env.num_worlds=2"])
     assert not _common.make_env(cfg.env, cfg.curriculum, 0).base_env.backend.params.box_blocks_base
+
+
+def test_std_ceiling_bounds_the_continuous_entries_only():
+    cfg = _cfg("train", ["env.backend=kinematic", "env.num_worlds=4", "model.actor_cells=[16]", "model.critic_cells=[16]",
+                         "model.min_scale=0.3", "model.max_scale=1.0", "model.init_scale=5.0"])
+    env = _common.make_env(cfg.env, cfg.curriculum, 0)
+    actor, *_ = _common.make_models(cfg.model, env, "popart", 0.98)
+    td = actor(env.reset())
+    scale = td["agents", "scale"]
+    cont = [i for i in range(scale.shape[-1]) if i != _common.GRASP_ENTRY]
+    assert scale[..., cont].max() <= 1.0 and scale[..., cont].min() >= 0.3
+    assert scale[..., _common.GRASP_ENTRY].min() > 1.0  # init_scale 5: the grasp entry is not capped
+    bad = _cfg("train", ["env.backend=kinematic", "env.num_worlds=4", "model.min_scale=0.3", "model.max_scale=0.1"])
+    with pytest.raises(ValueError, match="max_scale=0.1"):
+        _common.make_models(bad.model, env, "popart", 0.98)

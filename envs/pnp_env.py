@@ -136,7 +136,8 @@ class RobotEnvBase(EnvBase):
         """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
         st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
         st.update({k: getattr(self, k).clone() for k in self._STATE})
-        st["_claim"] = self._claim.clone()
+        if hasattr(self, "_claim"):  # PnPEnv's handle claims (optional: states saved before them lack it)
+            st["_claim"] = self._claim.clone()
         st["rng"] = self._rng.get_state()
         st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
         return st
@@ -148,7 +149,8 @@ class RobotEnvBase(EnvBase):
         self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
         for k in self._STATE:
             setattr(self, k, state[k].clone())
-        self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
+        if hasattr(self, "_claim"):
+            self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
         self._rng.set_state(state["rng"])
         self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
 

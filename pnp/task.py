@@ -159,7 +159,7 @@ def handles(s: PnPState) -> torch.Tensor:
 class Geometry:
     """Per-robot quantities every reward and condition uses (computed once per step)."""
 
-    handle: torch.Tensor  # [N, R, 3] the handle nearest the robot's EE ("its" handle)
+    handle: torch.Tensor  # [N, R, 3] the robot's handle: nearest its EE, or its claim
     own: torch.Tensor  # [N, R] bool, True where its handle is handle 1
     ee_handle: torch.Tensor  # [N, R, 3] handle - EE
     align: torch.Tensor  # [N, R] |cos| of the gripper-handle angle

@@ -1,7 +1,7 @@
 """Two robots on one box: do they grasp together, and at which handle? Roll-out of a dual
 checkpoint on its own (kinematic) env, 128 worlds, 300 steps, seed 7.
 
-    python results/train_dual/dual_bb1/handles.py CHECKPOINT det|rand OUT.json
+    python results/train_dual/dual_bb1/handles.py CHECKPOINT det|rand OUT.json [env.KEY=VALUE ...]
 """
 import json, platform, subprocess, sys, time, torch
 sys.path.insert(0, "recipes")
@@ -14,6 +14,7 @@ from pnp.task import handles
 t0 = time.monotonic()
 ck = _common.load_checkpoint(sys.argv[1]); mode = sys.argv[2]; W, steps = 128, 300
 cfg = OmegaConf.create(ck["cfg"]); cfg.env.num_worlds = W; cfg.env.max_episode_steps = steps + 5
+cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[4:]))  # e.g. env.handle_order=own_last
 env = _common.make_env(cfg.env, cfg.curriculum, 7)
 actor, *_ = _common.make_models(cfg.model, env, "popart", 0.98)
 load_module(actor, ck["actor"])

@@ -194,15 +194,16 @@ class AgentNet(nn.Module):
         return self.head(self.mlp(x))
 
 
-class ScaleFloor(nn.Module):
+class ScaleBounds(nn.Module):
     """Bounds on the policy's pre-tanh std, per action entry, around a param extractor.
 
     Why the floor: PPO moves the mean by a fraction of the std per iteration, so an entry
     whose std has collapsed barely moves. The grasp probability needs to move from "keep
     open" to "close and hold" long after the arm's entries have sharpened
     (model.grasp_min_scale). Why the ceiling (model.max_scale): with no entropy term two
-    dual-robot runs grew the std from ~0.4 to 1-42, every squashed command became a coin
-    flip between its bounds, and the learned approach was lost (results/train_dual/NOTES.md).
+    dual-robot runs grew the std from ~0.4 to 1-42 and every squashed command became a coin
+    flip between its bounds; a 1.0 ceiling held it at ~0.35, though that run lost its
+    approach all the same (results/train_dual/NOTES.md).
     """
 
     def __init__(self, extractor: nn.Module, floor: torch.Tensor, ceiling: torch.Tensor | None = None):
@@ -286,7 +287,7 @@ def make_models(model_cfg: DictConfig, env: TransformedEnv, value_norm: str, pop
         if (ceiling < floor).any():
             raise ValueError(f"model.max_scale={model_cfg.max_scale} is below the std floor {floor.max().item()}")
     if (floor > 0).any() or ceiling is not None:
-        head = ScaleFloor(head, floor, ceiling)
+        head = ScaleBounds(head, floor, ceiling)
     actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
                          head=head)
     dist_kwargs = {"low": spec.space.low, "high": spec.space.high}

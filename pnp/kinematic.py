@@ -162,6 +162,7 @@ class KinematicParams:
     gravity: float = GRAVITY
     box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
     lone_holder_pinned: bool = False  # True: two robots; a lone holder's EE cannot rise off the resting box
+    grasp_holds: bool = False  # True: two robots; a closed gripper keeps its bar, its EE follows the grasp point
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -257,11 +258,7 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
         lone = grasp & ~(grasp.flip(1) & (st["handle"] != st["handle"].flip(1)))
         wzc = torch.where(lone, torch.minimum(wzc, st["min_wz"] - st["rel_z"]), wzc)
     # Closed-form IK (see arm_ik), then the joint rate limit and the joint ranges.
-    c3 = ((torch.addcmul(dr2, wzc, wzc) - (L1 * L1 + L2 * L2)) * (1.0 / (2 * L1 * L2))).clamp(-1.0, 1.0)
-    q3 = -torch.acos(c3)
-    q2 = torch.atan2(-wzc, torch.sqrt(dr2)) - torch.atan2(L2 * torch.sin(q3), L2 * c3 + L1)
-    q1 = torch.atan2(wy, wx)
-    q_des = torch.stack([q1, q2, q3, zero, (math.pi / 2 - q2) - q3, q1 - yaw_t], -1)
+    q_des = _ik_wrist(wx, wy, wzc, dr2, yaw_t, zero)
     dq_max = ARM_SPEED * dt
     q = torch.clamp(q_old + (q_des - q_old).clamp(-dq_max, dq_max), st["q_low"], st["q_high"])
     arm = _fk(q, yaw1, bx, by)
@@ -297,6 +294,14 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     lin_x, lin_y, lin_z = (nx - box_x) * (1.0 / dt), (ny - box_y) * (1.0 / dt), (nz - box_z) * (1.0 / dt)
     box_yaw = torch.where(carried, torch.atan2(cs, cc), st["box_yaw"])
     wz_box = _wrap(box_yaw - st["box_yaw"]) * (1.0 / dt)
+
+    if p.grasp_holds and R == 2:
+        # The bar holds the hand: a holder's EE goes to its grasp point on the box's new pose
+        # (static for a lone holder, the pair's mean when both carry), as far as reach allows.
+        q = torch.where(grasp.unsqueeze(-1), _hold_q(st, q, grasp, nx, ny, nz, nc, ns, bx, by, yaw1, zero), q)
+        arm = _fk(q, yaw1, bx, by)
+        cy, sy, cg, sg = arm["cy"], arm["sy"], arm["cg"], arm["sg"]
+        ee_x, ee_y, ee_z = arm["ee_x"], arm["ee_y"], arm["ee_z"]
 
     # Handle bars in the (level) box frame: EE distance to both bars.
     ncu, nsu = nc.unsqueeze(1), ns.unsqueeze(1)
@@ -345,6 +350,39 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     return out
 
 
+def _ik_wrist(wx, wy, wzc, dr2, yaw_t, zero):
+    """Joint targets [N, R, 6] for a wrist centre (wx, wy, wzc) relative to the shoulder
+    (dr2 = wx^2 + wy^2, within reach) and gripper yaw ``yaw_t`` (base frame), as arm_ik."""
+    c3 = ((torch.addcmul(dr2, wzc, wzc) - (L1 * L1 + L2 * L2)) * (1.0 / (2 * L1 * L2))).clamp(-1.0, 1.0)
+    q3 = -torch.acos(c3)
+    q2 = torch.atan2(-wzc, torch.sqrt(dr2)) - torch.atan2(L2 * torch.sin(q3), L2 * c3 + L1)
+    q1 = torch.atan2(wy, wx)
+    return torch.stack([q1, q2, q3, zero, (math.pi / 2 - q2) - q3, q1 - yaw_t], -1)
+
+
+def _hold_q(st, q, grasp, nx, ny, nz, nc, ns, bx, by, yaw, zero) -> torch.Tensor:
+    """Joints [N, R, 6] that put each robot's EE at its grasp point on the box at (nx, ny, nz)
+    with yaw (nc, ns), clamped to reach and the joint ranges (no rate limit: the box drags it)."""
+    rx, ry, rc, rs = st["rel_x"], st["rel_y"], st["rel_c"], st["rel_s"]
+    ncu, nsu = nc.unsqueeze(1), ns.unsqueeze(1)
+    gc, gs = torch.addcmul(ncu * rc, nsu, rs), torch.addcmul(nsu * rc, ncu, rs, value=-1)  # gripper yaw = box yaw - rel
+    dx = nx.unsqueeze(1) - torch.addcmul(gc * rx, gs, ry, value=-1) - bx  # grasp point - base, world
+    dy = ny.unsqueeze(1) - torch.addcmul(gs * rx, gc, ry) - by
+    dz = nz.unsqueeze(1) - st["rel_z"] - STANDING_HEIGHT
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    ex, ey = torch.addcmul(c * dx, s, dy), torch.addcmul(c * dy, s, dx, value=-1)  # base frame
+    wx, wy, wzc = ex + _W_OFF[0], ey + _W_OFF[1], dz + _W_OFF[2]
+    dr2 = torch.addcmul(wx * wx, wy, wy)
+    n2 = torch.addcmul(dr2, wzc, wzc)
+    f2 = n2.clamp(REACH_MIN**2, REACH_MAX**2) / n2.clamp(min=1e-12)
+    f = torch.sqrt(f2)
+    yaw_t = torch.atan2(gs, gc) - yaw
+    q_h = _ik_wrist(wx * f, wy * f, wzc * f, dr2 * f2, yaw_t, zero)
+    q6 = q[..., 5] + _wrap(q_h[..., 5] - q[..., 5])  # the same gripper yaw, nearest the current j6
+    q_h = torch.cat([q_h[..., :5], q6.unsqueeze(-1)], -1)
+    return torch.clamp(q_h, st["q_low"], st["q_high"])
+
+
 def _box_overlap(st: dict[str, torch.Tensor], bx: torch.Tensor, by: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     """[N, R]: a base at (bx, by, yaw) has its footprint overlapping the (level) box's."""
     c, s = torch.cos(yaw), torch.sin(yaw)
@@ -374,14 +412,15 @@ class KinematicBackend(Backend):
 
     def __init__(self, num_worlds: int, num_robots: int, ee_tau: float = EE_TAU, finger_speed: float = FINGER_SPEED,
                  dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN,
-                 box_blocks_base: bool = False, lone_holder_pinned: bool = False):
+                 box_blocks_base: bool = False, lone_holder_pinned: bool = False, grasp_holds: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         self.num_worlds, self.num_robots = N, R = num_worlds, num_robots
         self.params = KinematicParams(dt=float(dt), ee_tau=float(ee_tau), finger_speed=float(finger_speed),
                                       grasp_dist=float(grasp_dist), grasp_align=float(grasp_align),
                                       box_blocks_base=bool(box_blocks_base),
-                                      lone_holder_pinned=bool(lone_holder_pinned) and num_robots == 2)
+                                      lone_holder_pinned=bool(lone_holder_pinned) and num_robots == 2,
+                                      grasp_holds=bool(grasp_holds) and num_robots == 2)
         f = dict(dtype=torch.float32)
         lim = torch.tensor(ARM_RANGES, **f)
         self.q_default = torch.tensor(ARM_DEFAULT, **f)

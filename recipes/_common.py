@@ -82,7 +82,7 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
         backend = str(env_cfg.backend)
         # Kinematic only (MuJoCo has real contacts): ignored elsewhere, so a run trained with it
         # still evaluates on MuJoCo.
-        kin = {k: True for k in ("box_blocks_base", "lone_holder_pinned") if env_cfg.get(k)}
+        kin = {k: True for k in ("box_blocks_base", "lone_holder_pinned", "grasp_holds") if env_cfg.get(k)}
         base = PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots),
                       backend=backend, backend_options=(kin or None) if backend == "kinematic" else None,
                       seed=int(seed), nthread=env_cfg.get("nthread"),

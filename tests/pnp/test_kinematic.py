@@ -348,6 +348,43 @@ def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
         assert b.grasp.all() and b.box_pos[0, 2] > box.size[2] / 2 + 0.2
 
 
+def test_a_held_bar_holds_the_hand_through_noisy_commands():
+    """grasp_holds: EE commands jittering 5-10 cm per step (a std-floored policy) keep the
+    grasp, alone on the resting box and while the pair lifts it; opening lets go."""
+    box = DUAL_ROBOT_BOXES[0]
+    b = KinematicBackend(1, 2, grasp_holds=True)
+    b.reset(torch.arange(1), _layout(1, 2, box, box_xy=(1.30, 0.0)))
+    hz = _handle_z_base(box)
+    a = _action(1, 2, ee=(0.75, 0.0, hz), yaw=torch.tensor([[math.pi / 2, math.pi / 2]]))
+    a[0, 1, 3] = 0.4  # robot 1 stays off its handle
+    _steps(b, a, 10)
+    a[0, 0, 7] = 1.0
+    _steps(b, a, 3)
+    grasp_pt = b.ee_pos[0, 0].clone()
+    gen = torch.Generator().manual_seed(0)
+    jitter = torch.tensor([0.1, 0.1, 0.05])  # (more in z and, this close, the wrist pitch j5 runs out of range)
+    for _ in range(20):  # robot 0 jitters alone: the box stays, its hand stays on the bar
+        noisy = a.clone()
+        noisy[..., 3:6] += jitter * torch.randn(1, 2, 3, generator=gen)
+        b.step(noisy)
+        assert b.grasp[0].tolist() == [True, False]
+    assert (b.ee_pos[0, 0] - grasp_pt).norm() < 1e-3
+    assert b.box_pos[0, 2].item() == pytest.approx(box.size[2] / 2, abs=1e-6)
+    a[0, 1, 3] = 0.75
+    _steps(b, a, 10)
+    a[0, 1, 7] = 1.0
+    _steps(b, a, 3)
+    a[..., 5] = hz + 0.15
+    for _ in range(15):  # both lift through the same jitter
+        noisy = a.clone()
+        noisy[..., 3:6] += jitter * torch.randn(1, 2, 3, generator=gen)
+        b.step(noisy)
+    assert b.grasp.all() and b.box_pos[0, 2] > box.size[2] / 2 + 0.1
+    a[0, 0, 7] = 0.0  # robot 0 lets go: the heavy box drops
+    _steps(b, a, 6)
+    assert b.box_pos[0, 2].item() == pytest.approx(box.size[2] / 2, abs=1e-6)
+
+
 # --- the task, end to end --------------------------------------------------------------------------
 def test_scripted_policy_succeeds():
     n = 16

@@ -56,7 +56,8 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   squeezing a bar do: each holder's joints are re-solved (no rate limit) to put its EE at
   its grasp point on the box's new pose (resting for a lone holder, the pair's mean when
   both carry), and a grasp ends only when the gripper opens or that point is out of the
-  arm's reach or joint ranges. Without it a policy whose EE commands jitter ~13 cm per step
+  arm's reach or joint ranges. The pair's box then does not slide on the floor either: it
+  moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without it a policy whose EE commands jitter ~13 cm per step
   (the std floor) lost 258 of 258 lone grasps by drift within a few steps (stop 17).
 * **Free box**: falls under gravity (exact constant-acceleration update of z and vz,
   horizontal velocity kept while airborne), stops on the floor with zero velocity and
@@ -106,6 +107,7 @@ EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
 # HL step (measured: 0.07 -> 7e-5 m); at 0.5 m/s a grasp needed two closed commands in a row,
 # which a stochastic policy almost never samples.
 FINGER_SPEED = 1.0
+LIFT_OFF = 0.01  # m, grasp_holds: a pair's box slides in x, y, yaw only with its bottom this far up
 GRASP_ALIGN = 0.7  # grasp needs 1 - |cos(closing axis, bar axis)| above this (~17 deg)
 _Q6_WIND = ARM_RANGES[5][1] - 0.1  # flip the gripper's half-turn choice before j6 reaches its limit
 
@@ -291,14 +293,18 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
         inv = torch.rsqrt(torch.addcmul(cc * cc, cs, cs).clamp(min=1e-12))
         cc, cs = cc * inv, cs * inv
     airborne = box_z > st["box_hc_eps"]
+    # With grasp_holds the pair's box does not slide on the floor (friction holds it, as for
+    # a lone holder): it moves in x, y and yaw only once lifted LIFT_OFF off. Else two holders dragged
+    # it to the goal after one brief lift, which counted as success (stop 17).
+    moves = carried & (cz > hc + LIFT_OFF) if p.grasp_holds and R == 2 else carried
     z_fall = torch.add(box_z, st["box_vz"], alpha=dt) - 0.5 * p.gravity * dt * dt
     flying = airborne & (z_fall > hc)
-    nx = torch.where(carried, cx, torch.where(airborne, torch.add(box_x, st["box_vx"], alpha=dt), box_x))
-    ny = torch.where(carried, cy_, torch.where(airborne, torch.add(box_y, st["box_vy"], alpha=dt), box_y))
+    nx = torch.where(moves, cx, torch.where(airborne, torch.add(box_x, st["box_vx"], alpha=dt), box_x))
+    ny = torch.where(moves, cy_, torch.where(airborne, torch.add(box_y, st["box_vy"], alpha=dt), box_y))
     nz = torch.maximum(torch.where(carried, cz, torch.where(airborne, z_fall, box_z)), hc)
-    nc, ns = torch.where(carried, cc, c0), torch.where(carried, cs, s0)
+    nc, ns = torch.where(moves, cc, c0), torch.where(moves, cs, s0)
     lin_x, lin_y, lin_z = (nx - box_x) * (1.0 / dt), (ny - box_y) * (1.0 / dt), (nz - box_z) * (1.0 / dt)
-    box_yaw = torch.where(carried, torch.atan2(cs, cc), st["box_yaw"])
+    box_yaw = torch.where(moves, torch.atan2(cs, cc), st["box_yaw"])
     wz_box = _wrap(box_yaw - st["box_yaw"]) * (1.0 / dt)
 
     if p.grasp_holds and R == 2:

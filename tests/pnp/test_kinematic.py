@@ -374,12 +374,17 @@ def test_a_held_bar_holds_the_hand_through_noisy_commands():
     _steps(b, a, 10)
     a[0, 1, 7] = 1.0
     _steps(b, a, 3)
+    xy0 = b.box_pos[0, :2].clone()
+    a[0, 0, 4], a[0, 1, 4] = 0.1, -0.1  # both pull one way (they face each other): no sliding on the floor
+    _steps(b, a, 5)
+    assert b.grasp.all() and torch.allclose(b.box_pos[0, :2], xy0)
     a[..., 5] = hz + 0.15
     for _ in range(15):  # both lift through the same jitter
         noisy = a.clone()
         noisy[..., 3:6] += jitter * torch.randn(1, 2, 3, generator=gen)
         b.step(noisy)
     assert b.grasp.all() and b.box_pos[0, 2] > box.size[2] / 2 + 0.1
+    assert abs(b.box_pos[0, 1] - xy0[1]) > 0.05  # lifted, the pull carries it
     a[0, 0, 7] = 0.0  # robot 0 lets go: the heavy box drops
     _steps(b, a, 6)
     assert b.box_pos[0, 2].item() == pytest.approx(box.size[2] / 2, abs=1e-6)

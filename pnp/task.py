@@ -231,7 +231,10 @@ def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
     """Bool [N, R, len(CONDITIONS)]; column i is the condition of edge S_i -> S_{i+1}."""
     dz = -g.ee_handle[..., 2]  # EE above the handle axis
     xy = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
-    ready = (xy < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
+    # A gripper that holds its handle counts as ready too (ours): grasps along the bar, off
+    # its centre, left two dual robots carrying the box home in S0 (stop 17), and the
+    # curriculum, seeing no stage past S3, faded the placing terms.
+    ready = ((xy < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)) | g.grasped
     # Box conditions are [N, 1] and broadcast over the robots.
     lift = (g.box_lift > LIFT_HEIGHT).unsqueeze(1)
     in_goal = g.box_in_goal.unsqueeze(1)

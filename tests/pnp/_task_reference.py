@@ -89,7 +89,8 @@ def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
     R = s.ee_pos.shape[1]
     dz = -g.ee_handle[..., 2]  # EE above the handle axis
     ready = (g.ee_handle[..., :2].norm(dim=-1) < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
-    ready = ready | g.grasped  # a held handle counts as ready (semantics changed at stop 17)
+    if R == 2:
+        ready = ready | g.grasped  # two robots: a held handle counts as ready (since stop 17)
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731  shared box conditions
     lifted = g.grasped & box(g.box_lift > LIFT_HEIGHT)
     on_goal = lifted & box(g.box_in_goal)

@@ -23,7 +23,7 @@ from pnp.ee_task import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.pnp_env import PnPEnv
 from pnp.layout import START_RANGE
-from pnp.stage_graph import pnp_default_stage_graph, pnp_default_reward_config
+from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
 from pnp.task import HL_DT, ee_out_of_reach
 from pnp.transforms import StageTransition, make_reward_schedule
 
@@ -101,10 +101,24 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
     return TransformedEnv(base, Compose(
         # Before StageTransition: a shorter episode limit sets done, which ends the stage.
         StepCounter(max_steps=env_cfg.get("max_episode_steps")),
-        StageTransition(TASKS[task][0](), one_hot_key=STAGE_ONE_HOT,
+        StageTransition(stage_graph(cur_cfg, task), one_hot_key=STAGE_ONE_HOT,
                         episode_stage=str(cur_cfg.get("episode_stage", "final"))),
         make_reward_schedule(name, **sched),
     ))
+
+
+def stage_graph(cur_cfg: DictConfig, task: str = "pnp") -> StageGraph:
+    """The task's stage graph, with ``curriculum.backward_edges`` (a list of [from, to]
+    stage names or indices) in place of its own backward edges when that is set."""
+    graph = TASKS[task][0]()
+    edges = cur_cfg.get("backward_edges")
+    if edges is None:
+        return graph
+    pairs = [tuple(e) for e in edges]
+    bad = [e for e in pairs if len(e) != 2]
+    if bad:
+        raise ValueError(f"curriculum.backward_edges needs [from, to] pairs, got {bad}")
+    return StageGraph(graph.stages, graph.conditions, tuple(pairs))
 
 
 def schedule_of(env: TransformedEnv):

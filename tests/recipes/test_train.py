@@ -341,3 +341,16 @@ def test_resume_takes_only_the_listed_keys_from_the_command_line(tmp_path):
     cfg = _cfg("train", [*TINY, "env.nthread=1", "env.num_worlds=8", f"resume={tmp_path / 'run'}"])
     saved, _ = train_recipe._resume_cfg(cfg)
     assert saved.env.nthread == 1 and saved.env.num_worlds == 4  # moved machine; world count is the run's
+
+
+def test_backward_edges_override_replaces_the_tasks_edges_and_names_bad_stages():
+    default = _common.stage_graph(_cfg("train", TINY).curriculum)
+    edges = "curriculum.backward_edges=[[gripper_ready,idle],[object_grabbed,idle],[released,object_placed]]"
+    graph = _common.stage_graph(_cfg("train", [*TINY, edges]).curriculum)
+    placed, on_goal = graph.stages.index("object_placed"), graph.stages.index("object_on_goal")
+    assert (placed, on_goal) in default.backward_edges and (placed, on_goal) not in graph.backward_edges
+    stage, cond = torch.tensor([placed]), torch.zeros(1, len(CONDITIONS), dtype=torch.bool)
+    assert default.next_stage(stage, cond).item() == on_goal  # "placed" lost: back ...
+    assert graph.next_stage(stage, cond).item() == placed  # ... or not, without the edge
+    with pytest.raises(ValueError, match="'lifted'"):
+        _common.stage_graph(_cfg("train", [*TINY, "curriculum.backward_edges=[[lifted,idle]]"]).curriculum)

@@ -57,8 +57,9 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   its grasp point on the box's new pose (resting for a lone holder, the pair's mean when
   both carry), and a grasp ends only when the gripper opens or that point is out of the
   arm's reach or joint ranges. The pair's box then does not slide on the floor either: it
-  moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without it a policy whose EE commands jitter ~13 cm per step
-  (the std floor) lost 258 of 258 lone grasps by drift within a few steps (stop 17).
+  moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without the option, a
+  policy whose EE commands jitter ~13 cm per step (the std floor) lost 258 of 258 lone
+  grasps by drift within a few steps (stop 17).
 * **Free box**: falls under gravity (exact constant-acceleration update of z and vz,
   horizontal velocity kept while airborne), stops on the floor with zero velocity and
   rests there. A carried box cannot be pushed through the floor: the holder's EE height
@@ -252,11 +253,7 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     d = torch.add(d, torch.round((q6_old - d) * (0.5 / _Q6_WIND)), alpha=math.pi)
     yaw_t = torch.add(yaw_now, d, alpha=alpha)
     wx, wy, wzc = (torch.lerp(st["ee_b"], action[..., 3:6], alpha) + _W_OFF).unbind(-1)  # wrist centre rel. to shoulder
-    dr2 = torch.addcmul(wx * wx, wy, wy)
-    n2 = torch.addcmul(dr2, wzc, wzc)
-    f2 = n2.clamp(REACH_MIN**2, REACH_MAX**2) / n2.clamp(min=1e-12)
-    f = torch.sqrt(f2)
-    wx, wy, wzc, dr2 = wx * f, wy * f, wzc * f, dr2 * f2
+    wx, wy, wzc, dr2 = _in_reach(wx, wy, wzc)
     # A held box stays above the floor: EE height >= c/2 - (box z - EE z at grasp).
     wzc = torch.where(grasp, torch.maximum(wzc, st["min_wz"] - st["rel_z"]), wzc)
     if p.lone_holder_pinned:
@@ -294,8 +291,8 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
         cc, cs = cc * inv, cs * inv
     airborne = box_z > st["box_hc_eps"]
     # With grasp_holds the pair's box does not slide on the floor (friction holds it, as for
-    # a lone holder): it moves in x, y and yaw only once lifted LIFT_OFF off. Else two holders dragged
-    # it to the goal after one brief lift, which counted as success (stop 17).
+    # a lone holder): it moves in x, y and yaw only once lifted LIFT_OFF off. Else two
+    # holders dragged it to the goal after one brief lift, which counted as success (stop 17).
     moves = carried & (cz > hc + LIFT_OFF) if p.grasp_holds and R == 2 else carried
     z_fall = torch.add(box_z, st["box_vz"], alpha=dt) - 0.5 * p.gravity * dt * dt
     flying = airborne & (z_fall > hc)
@@ -310,7 +307,7 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     if p.grasp_holds and R == 2:
         # The bar holds the hand: a holder's EE goes to its grasp point on the box's new pose
         # (static for a lone holder, the pair's mean when both carry), as far as reach allows.
-        q = torch.where(grasp.unsqueeze(-1), _hold_q(st, q, grasp, nx, ny, nz, nc, ns, bx, by, yaw1, zero), q)
+        q = torch.where(grasp.unsqueeze(-1), _hold_q(st, q, nx, ny, nz, nc, ns, bx, by, yaw1, zero), q)
         arm = _fk(q, yaw1, bx, by)
         cy, sy, cg, sg = arm["cy"], arm["sy"], arm["cg"], arm["sg"]
         ee_x, ee_y, ee_z = arm["ee_x"], arm["ee_y"], arm["ee_z"]
@@ -362,6 +359,16 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     return out
 
 
+def _in_reach(wx, wy, wzc):
+    """A wrist centre relative to the shoulder scaled onto the reachable shell
+    [REACH_MIN, REACH_MAX]; returns it and its horizontal distance squared."""
+    dr2 = torch.addcmul(wx * wx, wy, wy)
+    n2 = torch.addcmul(dr2, wzc, wzc)
+    f2 = n2.clamp(REACH_MIN**2, REACH_MAX**2) / n2.clamp(min=1e-12)
+    f = torch.sqrt(f2)
+    return wx * f, wy * f, wzc * f, dr2 * f2
+
+
 def _ik_wrist(wx, wy, wzc, dr2, yaw_t, zero):
     """Joint targets [N, R, 6] for a wrist centre (wx, wy, wzc) relative to the shoulder
     (dr2 = wx^2 + wy^2, within reach) and gripper yaw ``yaw_t`` (base frame), as arm_ik."""
@@ -372,7 +379,7 @@ def _ik_wrist(wx, wy, wzc, dr2, yaw_t, zero):
     return torch.stack([q1, q2, q3, zero, (math.pi / 2 - q2) - q3, q1 - yaw_t], -1)
 
 
-def _hold_q(st, q, grasp, nx, ny, nz, nc, ns, bx, by, yaw, zero) -> torch.Tensor:
+def _hold_q(st, q, nx, ny, nz, nc, ns, bx, by, yaw, zero) -> torch.Tensor:
     """Joints [N, R, 6] that put each robot's EE at its grasp point on the box at (nx, ny, nz)
     with yaw (nc, ns), clamped to reach and the joint ranges (no rate limit: the box drags it)."""
     rx, ry, rc, rs = st["rel_x"], st["rel_y"], st["rel_c"], st["rel_s"]
@@ -383,13 +390,8 @@ def _hold_q(st, q, grasp, nx, ny, nz, nc, ns, bx, by, yaw, zero) -> torch.Tensor
     dz = nz.unsqueeze(1) - st["rel_z"] - STANDING_HEIGHT
     c, s = torch.cos(yaw), torch.sin(yaw)
     ex, ey = torch.addcmul(c * dx, s, dy), torch.addcmul(c * dy, s, dx, value=-1)  # base frame
-    wx, wy, wzc = ex + _W_OFF[0], ey + _W_OFF[1], dz + _W_OFF[2]
-    dr2 = torch.addcmul(wx * wx, wy, wy)
-    n2 = torch.addcmul(dr2, wzc, wzc)
-    f2 = n2.clamp(REACH_MIN**2, REACH_MAX**2) / n2.clamp(min=1e-12)
-    f = torch.sqrt(f2)
-    yaw_t = torch.atan2(gs, gc) - yaw
-    q_h = _ik_wrist(wx * f, wy * f, wzc * f, dr2 * f2, yaw_t, zero)
+    wx, wy, wzc, dr2 = _in_reach(ex + _W_OFF[0], ey + _W_OFF[1], dz + _W_OFF[2])
+    q_h = _ik_wrist(wx, wy, wzc, dr2, torch.atan2(gs, gc) - yaw, zero)
     q6 = q[..., 5] + _wrap(q_h[..., 5] - q[..., 5])  # the same gripper yaw, nearest the current j6
     q_h = torch.cat([q_h[..., :5], q6.unsqueeze(-1)], -1)
     return torch.clamp(q_h, st["q_low"], st["q_high"])

@@ -322,10 +322,11 @@ def test_dual_lift_needs_both_robots():
 
 
 
-@pytest.mark.parametrize("pinned", [False, True])
-def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
+def _robot0_grasps_alone(**options):
+    """Two robots facing a dual box's handles; robot 0 grasps, robot 1 stays off.
+    Returns the backend, the box, the action (to go on with) and the handle height."""
     box = DUAL_ROBOT_BOXES[0]
-    b = KinematicBackend(1, 2, lone_holder_pinned=pinned)
+    b = KinematicBackend(1, 2, **options)
     b.reset(torch.arange(1), _layout(1, 2, box, box_xy=(1.30, 0.0)))
     hz = _handle_z_base(box)
     a = _action(1, 2, ee=(0.75, 0.0, hz), yaw=torch.tensor([[math.pi / 2, math.pi / 2]]))
@@ -333,6 +334,12 @@ def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
     _steps(b, a, 10)
     a[0, 0, 7] = 1.0
     _steps(b, a, 3)
+    return b, box, a, hz
+
+
+@pytest.mark.parametrize("pinned", [False, True])
+def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
+    b, box, a, hz = _robot0_grasps_alone(lone_holder_pinned=pinned)
     assert b.grasp[0].tolist() == [True, False]
     a[0, 0, 5] = hz + 0.25  # robot 0 tries to lift alone
     _steps(b, a, 10)
@@ -351,15 +358,7 @@ def test_a_lone_holder_keeps_its_grasp_only_when_pinned(pinned):
 def test_a_held_bar_holds_the_hand_through_noisy_commands():
     """grasp_holds: EE commands jittering 5-10 cm per step (a std-floored policy) keep the
     grasp, alone on the resting box and while the pair lifts it; opening lets go."""
-    box = DUAL_ROBOT_BOXES[0]
-    b = KinematicBackend(1, 2, grasp_holds=True)
-    b.reset(torch.arange(1), _layout(1, 2, box, box_xy=(1.30, 0.0)))
-    hz = _handle_z_base(box)
-    a = _action(1, 2, ee=(0.75, 0.0, hz), yaw=torch.tensor([[math.pi / 2, math.pi / 2]]))
-    a[0, 1, 3] = 0.4  # robot 1 stays off its handle
-    _steps(b, a, 10)
-    a[0, 0, 7] = 1.0
-    _steps(b, a, 3)
+    b, box, a, hz = _robot0_grasps_alone(grasp_holds=True)
     grasp_pt = b.ee_pos[0, 0].clone()
     gen = torch.Generator().manual_seed(0)
     jitter = torch.tensor([0.1, 0.1, 0.05])  # (more in z and, this close, the wrist pitch j5 runs out of range)

@@ -18,11 +18,16 @@ env = _common.make_env(cfg.env, cfg.curriculum, 7)
 actor, *_ = _common.make_models(cfg.model, env, "popart", 0.98)
 load_module(actor, ck["actor"])
 opened = closed_lost = kept = 0; both = torch.zeros(W, dtype=torch.bool); lifted = both.clone(); prev = None
+base = env.base_env; ee_steps = []  # EE displacement per step of robots grasped at its start, command closed
+ee = lambda: base.backend.state(base._goal, base._init_goal_dist, torch.zeros(W, 2)).ee_pos.clone()  # noqa: E731
 with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
     td = env.reset()
     for t in range(steps):
+        ee0 = ee()
         td = env.step(actor(td)); c = td["next", "agents", "stage_conditions"]; g = c[..., 1]  # grasped
         shut = td["agents", "action"][..., 7] > 0.5
+        if prev is not None:
+            ee_steps.append((ee() - ee0).norm(dim=-1)[prev & shut])
         if prev is not None:
             lost = prev & ~g
             opened += int((lost & ~shut).sum()); closed_lost += int((lost & shut).sum()); kept += int((prev & g).sum())
@@ -30,7 +35,8 @@ with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
         td = env.step_mdp(td)
 out = {"checkpoint": sys.argv[1], "iteration": ck["counters"]["iteration"], "overrides": sys.argv[3:], "worlds": W, "steps": steps,
        "seed": 7, "grasps_ended_opened": opened, "grasps_lost_closed": closed_lost, "grasp_steps_kept": kept,
-       "world_both_grasped_at_once": both.float().mean().item(), "world_lifted": lifted.float().mean().item(),
+       "world_both_grasped_at_once": both.float().mean().item(),
+       "ee_step_m_while_held_median": torch.cat(ee_steps).median().item(), "world_lifted": lifted.float().mean().item(),
        "command": "python " + " ".join(sys.argv),
        "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip(),
        "machine": f"{platform.system()} {platform.machine()}, 2 cores", "wall_s": round(time.monotonic() - t0, 1)}

@@ -10,7 +10,7 @@ from tensordict.nn import InteractionType, set_interaction_type
 import _common
 from _warm_start import load_module
 
-t0 = time.monotonic()
+t0 = time.monotonic(); torch.manual_seed(7)  # the sampled actions
 ck = _common.load_checkpoint(sys.argv[1]); W, steps = 128, 300
 cfg = OmegaConf.create(ck["cfg"]); cfg.env.num_worlds = W; cfg.env.max_episode_steps = steps + 5
 cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(sys.argv[3:]))

@@ -57,9 +57,10 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   its grasp point on the box's new pose (resting for a lone holder, the pair's mean when
   both carry), and a grasp ends only when the gripper opens or that point is out of the
   arm's reach or joint ranges. The pair's box then does not slide on the floor either: it
-  moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without the option, a
-  policy whose EE commands jitter ~13 cm per step (the std floor) lost 258 of 258 lone
-  grasps by drift within a few steps (stop 17).
+  moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without it (with
+  ``lone_holder_pinned``) a policy whose EE moves ~14 cm per step (the std floor) lost 285 of
+  285 grasps with the
+  gripper still closed, after less than a step on average (stop 17).
 * **Free box**: falls under gravity (exact constant-acceleration update of z and vz,
   horizontal velocity kept while airborne), stops on the floor with zero velocity and
   rests there. A carried box cannot be pushed through the floor: the holder's EE height

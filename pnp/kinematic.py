@@ -59,8 +59,7 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   arm's reach or joint ranges. The pair's box then does not slide on the floor either: it
   moves in x, y and yaw only once lifted ``LIFT_OFF`` (1 cm) off it. Without it (with
   ``lone_holder_pinned``) a policy whose EE moves ~14 cm per step (the std floor) lost 285 of
-  285 grasps with the
-  gripper still closed, after less than a step on average (stop 17).
+  285 grasps with the gripper still closed, after less than a step on average (stop 17).
 * **Free box**: falls under gravity (exact constant-acceleration update of z and vz,
   horizontal velocity kept while airborne), stops on the floor with zero velocity and
   rests there. A carried box cannot be pushed through the floor: the holder's EE height

@@ -136,8 +136,6 @@ class RobotEnvBase(EnvBase):
         """Full env state (backend, episode bookkeeping, RNG, counters) for exact resumes."""
         st = {f"backend.{k}": v for k, v in self.backend.get_state().items()}
         st.update({k: getattr(self, k).clone() for k in self._STATE})
-        if hasattr(self, "_claim"):  # PnPEnv's handle claims (optional: states saved before them lack it)
-            st["_claim"] = self._claim.clone()
         st["rng"] = self._rng.get_state()
         st["counters"] = torch.tensor([self.clipped_count, self.diverged_count])
         return st
@@ -149,8 +147,6 @@ class RobotEnvBase(EnvBase):
         self.backend.set_state({k.split(".", 1)[1]: v for k, v in state.items() if k.startswith("backend.")})
         for k in self._STATE:
             setattr(self, k, state[k].clone())
-        if hasattr(self, "_claim"):
-            self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
         self._rng.set_state(state["rng"])
         self.clipped_count, self.diverged_count = (int(x) for x in state["counters"])
 
@@ -295,6 +291,14 @@ class PnPEnv(RobotEnvBase):
 
     # --- extras ------------------------------------------------------------------------------
     _STATE = ("_goal", "_init_goal_dist", "_last_action", "_steps", "_was_lifted", "_success_step")
+
+    def get_state(self) -> dict:
+        return {**super().get_state(), "_claim": self._claim.clone()}
+
+    def set_state(self, state: dict) -> None:
+        super().set_state(state)
+        # States saved before handle claims lack them: every robot unclaimed.
+        self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
 
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""

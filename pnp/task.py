@@ -222,8 +222,9 @@ def update_claims(claim: torch.Tensor, g: Geometry) -> torch.Tensor:
     Why: a handle order that follows the nearest handle feeds back into the policy; listed
     nearest-first, the one-robot policy's nearest handle flipped 13399 times in 38400
     robot-steps (218 under identity order) and it got "ready" in 0.8 % of worlds. And two
-    robots at one handle swapped it as each came nearer (stop 16). Who takes which is then set by where the
-    robots start (the farther of two at one handle takes the other), not chosen later."""
+    robots at one handle swapped it as each came nearer (stop 16). Who takes which is then
+    set by where the robots start (the farther of two at one handle takes the other), not
+    chosen later."""
     return torch.where(claim >= 0, claim, g.own.long())
 
 

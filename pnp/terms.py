@@ -69,13 +69,6 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     RewardTerm("collision", None, -1.0, 0.0, 1.0),
     RewardTerm("joint_limits", None, -1.0, 0.0, float("inf")),
     RewardTerm("fall", None, -100.0, 0.0, 1.0),
-    # Ours: how far (m) the EE command lies beyond the arm's reach. The executor moves such
-    # commands onto the reach boundary, so the excess does nothing; unpenalised, a MuJoCo
-    # fine-tune parked its mean command there (x = 1.29 vs ~0.96 m reach) and stood 10 cm
-    # short of the handle, a fixed point only the training noise escaped. Weight 0 here (from
-    # scratch, -1 cut the fast learning test's mean end stage from 0.85 to 0.17, seed 0); fine-tunes
-    # set it with curriculum.fixed_weights (results/train_single/LINEAGE.md).
-    RewardTerm("ee_out_of_reach", None, 0.0, 0.0, float("inf")),
 )
 
 REWARD_TERMS: tuple[str, ...] = tuple(t.name for t in REWARD_TABLE)

@@ -1,4 +1,4 @@
-"""FROZEN reference copy of the ``pnp/task.py`` per-step functions, used only by
+"""FROZEN reference copy of the ``pnp.task`` per-step functions, used only by
 ``tests/pnp/test_task_equivalence.py``: the straightforward (matmul/gather) implementation
 the optimised ``pnp.task`` must reproduce. Do not edit or import it from library code.
 
@@ -10,7 +10,6 @@ from __future__ import annotations
 import torch
 
 from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
-from pnp.kinematics import clamp_reach
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.task import (
@@ -90,7 +89,7 @@ def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
     dz = -g.ee_handle[..., 2]  # EE above the handle axis
     ready = (g.ee_handle[..., :2].norm(dim=-1) < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
     if R == 2:
-        ready = ready | g.grasped  # two robots: a held handle counts as ready (since stop 17)
+        ready = ready | g.grasped  # two robots: a held handle counts as ready (ours, see pnp.task_conditions)
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731  shared box conditions
     lifted = g.grasped & box(g.box_lift > LIFT_HEIGHT)
     on_goal = lifted & box(g.box_in_goal)
@@ -133,7 +132,6 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "collision": collision,
         "joint_limits": torch.clamp((s.arm_q - mid).abs() - 0.95 * half, min=0.0).sum(-1),
         "fall": g.fell.float(),
-        "ee_out_of_reach": (action[..., 3:6] - clamp_reach(action[..., 3:6])).norm(dim=-1),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

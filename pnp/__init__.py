@@ -1,5 +1,6 @@
-"""Collaborative loco-manipulation pick-and-place with a dynamic reward curriculum."""
-import os
+"""Collaborative loco-manipulation pick-and-place with a dynamic reward curriculum.
 
-# Offscreen rendering on CPU machines (Debian's Mesa EGL); set before dm_control loads.
-os.environ.setdefault("MUJOCO_GL", "egl")
+Imports nothing: ``pnp.transforms`` needs only torch, torchrl and tensordict, and the
+modules that load mujoco or dm_control set up offscreen rendering themselves
+(:mod:`pnp._offscreen`).
+"""

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
+
 import numpy as np
 from dm_control import composer, mjcf
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 
+from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before pytorch_kinematics loads mujoco
+
 import pytorch_kinematics as pk
 import pytorch_kinematics.mjcf as pk_mjcf
 import torch

@@ -9,6 +9,8 @@ from __future__ import annotations
 import copy
 import os
 
+from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+
 import mujoco
 import numpy as np
 from mujoco import rollout

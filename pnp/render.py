@@ -1,6 +1,8 @@
 """Offscreen rendering of one world of a :class:`pnp.backend.MujocoBackend` (CPU: EGL/Mesa)."""
 from __future__ import annotations
 
+from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+
 import mujoco
 import numpy as np
 

@@ -10,6 +10,8 @@ shown in the standing pose; they collide with the box but not with the floor.
 """
 from __future__ import annotations
 
+from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
+
 import numpy as np
 from dm_control import composer, mjcf
 

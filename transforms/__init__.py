@@ -1,4 +1,14 @@
-"""TorchRL transforms of the dynamic reward curriculum (installed as ``pnp.transforms``)."""
+"""TorchRL transforms of the dynamic reward curriculum (installed as ``pnp.transforms``).
+
+Needs only torch, torchrl and tensordict (the base install; mujoco and the recipes' tools
+are extras). Per-robot entries live in a group, ``"agents"`` by default, of batch
+``[*B, A]``: ``B`` the env batch, ``A`` the robots; an entry of another shape is a
+``ValueError`` naming its key, the shape seen and the shape expected. The transforms run
+in an env (alone, in a ``Compose``, in ``SerialEnv``/``ParallelEnv``, in a collector) or
+called directly on a tensordict holding t and ``"next"``; a replay buffer is refused
+(``RuntimeError``): their state is per env world, and sampled rows have no world, so
+compute stages and rewards in the env and store them.
+"""
 from __future__ import annotations
 
 from ._reward_scaling import (

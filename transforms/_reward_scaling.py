@@ -27,7 +27,8 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ._stage import _get, _ResetKeysMixin, _set_nested, _slot_reset_mask
+from ._checks import _check_agent_shape, _check_exact, _check_names, _EnvOnly, _get
+from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = [
     "AdaptiveRewardScaling",
@@ -39,7 +40,7 @@ __all__ = [
 ]
 
 
-class StageRewardSchedule(_ResetKeysMixin, Transform):
+class StageRewardSchedule(_ResetKeysMixin, _EnvOnly, Transform):
     """Base class: term bookkeeping, the reward sum and the episode-end stage histogram.
 
     Args:
@@ -51,9 +52,20 @@ class StageRewardSchedule(_ResetKeysMixin, Transform):
         stage_progress_term: a term whose value is replaced by the current stage index
             (Table II "stage progress": only the curriculum knows the stage).
         stage_gates: term -> min stage; the term counts only when ``stage >= min``.
+
+    Per-robot entries have shape ``[*B, A, ...]`` (``B`` the env batch), else ``ValueError``.
+    Not for replay buffers: the state is per env world and robot, a sampled batch has no
+    world identity (rho would be sized to the first sample, never move, and be applied to
+    rows by position), so ``forward`` refuses there (eval mode, no env): compute rewards in
+    the env and store them.
     """
 
     _own_keys: frozenset[str] = frozenset()
+    _needs_env = "its state (rho, the stage histogram) is per env world and robot"
+    _instead = (
+        "Compute the rewards in the env (TransformedEnv(env, Compose(StageTransition(...), "
+        "schedule))) and store them."
+    )
 
     def __init__(
         self,
@@ -135,8 +147,10 @@ class StageRewardSchedule(_ResetKeysMixin, Transform):
                 f"{self.terms_key!r} has {terms.shape[-1]} terms in its last dim, the "
                 f"schedule is configured with {len(self.term_names)}: {self.term_names}"
             )
-        stage = _get(next_td, self.stage_key, "step output").reshape(terms.shape[:-1])
-        return terms, stage.long()
+        n_agents = _check_agent_shape(self.terms_key, terms.shape, next_td.batch_size, terms.shape[-1:])
+        stage = _get(next_td, self.stage_key, "step output")
+        _check_agent_shape(self.stage_key, stage.shape, next_td.batch_size, (1,), n_agents)
+        return terms, stage.reshape(terms.shape[:-1]).long()
 
     def _reward(self, terms: torch.Tensor, stage: torch.Tensor) -> torch.Tensor:
         if self._progress_col >= 0:
@@ -151,6 +165,7 @@ class StageRewardSchedule(_ResetKeysMixin, Transform):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         terms, stage = self._read(next_tensordict)
         final = _get(next_tensordict, self.episode_stage_key, "step output")
+        _check_agent_shape(self.episode_stage_key, final.shape, next_tensordict.batch_size, (1,), stage.shape[-1])
         final = final.reshape(stage.shape).long()
         self._before_reward(stage)
         next_tensordict.set(self.reward_key, self._reward(terms, stage))
@@ -166,6 +181,7 @@ class StageRewardSchedule(_ResetKeysMixin, Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One env-free step: ``tensordict`` holds t and its ``"next"`` entry."""
+        self._refuse_replay_buffer()
         tensordict.set("next", self._step(tensordict, _get(tensordict, "next", "input")))
         return tensordict
 
@@ -186,6 +202,7 @@ class StageRewardSchedule(_ResetKeysMixin, Transform):
                 f"{self.terms_key!r} spec has {terms.shape[-1]} terms, "
                 f"expected {len(self.term_names)}"
             )
+        _check_agent_shape(self.terms_key, terms.shape, obs.shape, terms.shape[-1:])
         spec = Unbounded(shape=(*terms.shape[:-1], 1), dtype=terms.dtype, device=terms.device)
         _set_nested(reward_spec, self.reward_key, spec, like=obs)
         return reward_spec
@@ -313,6 +330,7 @@ class AdaptiveRewardScaling(StageRewardSchedule):
         if not self.initialized:  # no step yet, so no episode has ended: only allocate
             stage = tensordict_reset.get(self.stage_key, None)
             if stage is not None:
+                _check_agent_shape(self.stage_key, stage.shape, tensordict_reset.batch_size, (1,))
                 self._before_reward(stage.reshape(stage.shape[:-1]))
             return tensordict_reset
         pending = self.pending_stage
@@ -375,20 +393,3 @@ def make_reward_schedule(schedule: str, **cfg) -> StageRewardSchedule:
     cls = SCHEDULES[schedule]
     others = frozenset().union(*(c._own_keys for c in SCHEDULES.values())) - cls._own_keys
     return cls(**{k: v for k, v in cfg.items() if k not in others})
-
-
-def _check_names(what: str, given, known: Sequence[str], unique: bool = False) -> None:
-    unknown = [n for n in given if n not in known]
-    if unknown:
-        raise ValueError(f"unknown term(s) in {what}: {unknown}; terms are {tuple(known)}")
-    if unique and len(set(given)) != len(list(given)):
-        raise ValueError(f"duplicate names in {what}: {list(given)}")
-
-
-def _check_exact(what: str, given: Mapping[str, float], expected: Sequence[str]) -> None:
-    missing = [n for n in expected if n not in given]
-    extra = [n for n in given if n not in expected]
-    if missing or extra:
-        raise ValueError(
-            f"{what} must cover exactly {tuple(expected)}: missing {missing}, unexpected {extra}"
-        )

@@ -19,21 +19,9 @@ from torchrl.envs.transforms.utils import _get_reset
 
 from pnp.stage_graph import StageGraph
 
+from ._checks import _check_agent_shape, _EnvOnly, _get
+
 __all__ = ["StageTransition"]
-
-
-def _get(td: TensorDictBase, key: NestedKey, where: str) -> torch.Tensor:
-    """``td.get(key)`` with an error that says what is there instead."""
-    value = td.get(key, None)
-    if value is None:
-        present = ", ".join(sorted(_fmt(k) for k in td.keys(True, True)))
-        raise KeyError(f"{_fmt(key)} not found in the {where} tensordict; keys present: {present}")
-    return value
-
-
-def _fmt(key: NestedKey) -> str:
-    """``("agents", "stage")`` -> ``agents.stage`` (KeyError messages escape quotes)."""
-    return key if isinstance(key, str) else ".".join(key)
 
 
 def _slot_reset_mask(
@@ -80,7 +68,7 @@ class _ResetKeysMixin:
         return list(parent.reset_keys) if parent is not None else ["_reset"]
 
 
-class StageTransition(_ResetKeysMixin, Transform):
+class StageTransition(_ResetKeysMixin, _EnvOnly, Transform):
     """Advances each robot's stage along a :class:`~pnp.stage_graph.StageGraph`.
 
     Reads ``conditions_key`` (bool ``[*B, A, C]``, columns in ``graph.conditions``
@@ -102,7 +90,16 @@ class StageTransition(_ResetKeysMixin, Transform):
 
     Place it after any transform that changes ``done`` (e.g. ``StepCounter``).
     ``transform(td)`` outside an env runs one step on a td holding t and ``"next"``.
+
+    Per-robot entries have shape ``[*B, A, ...]`` (``B`` the env batch): a group of another
+    batch is a ``ValueError`` naming the key. Not for replay buffers: the stage advances
+    one step at a time in each env world, and a sampled batch has no world identity, so
+    ``forward`` refuses when it finds itself in one (eval mode, no env); stages are
+    computed in the env and stored with the data.
     """
+
+    _needs_env = "it advances each env world's stage one step at a time"
+    _instead = "Compute the stages in the env (TransformedEnv(env, StageTransition(...))) and store them."
 
     def __init__(
         self,
@@ -151,7 +148,9 @@ class StageTransition(_ResetKeysMixin, Transform):
                 f"{self.conditions_key!r} has {cond.shape[-1]} columns, the graph has "
                 f"{len(self.graph.conditions)} conditions {self.graph.conditions}"
             )
+        n_agents = _check_agent_shape(self.conditions_key, cond.shape, next_tensordict.batch_size, cond.shape[-1:])
         stage = _get(tensordict, self.stage_key, "step input (reset the env first?)")
+        _check_agent_shape(self.stage_key, stage.shape, tensordict.batch_size, (1,), n_agents)
         stage = stage.reshape(cond.shape[:-1])
         new = self.graph.next_stage(stage, cond)
         done = _done_per_slot(_get(next_tensordict, self.done_key, "step output"), new.shape)
@@ -166,6 +165,10 @@ class StageTransition(_ResetKeysMixin, Transform):
         # previous stage; worlds not reset keep their stage.
         prev = tensordict.get(self.stage_key, None)
         cond = tensordict_reset.get(self.conditions_key, None)
+        if cond is not None:
+            _check_agent_shape(self.conditions_key, cond.shape, tensordict_reset.batch_size, cond.shape[-1:])
+        if prev is not None:
+            _check_agent_shape(self.stage_key, prev.shape, tensordict.batch_size, (1,))
         like = cond if cond is not None else prev
         if like is not None:
             slots, device = like.shape[:-1], like.device
@@ -193,6 +196,7 @@ class StageTransition(_ResetKeysMixin, Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One env-free step: ``tensordict`` holds t and its ``"next"`` entry."""
+        self._refuse_replay_buffer()
         next_td = _get(tensordict, "next", "input")
         tensordict.set("next", self._step(tensordict, next_td))
         return tensordict
@@ -205,6 +209,7 @@ class StageTransition(_ResetKeysMixin, Transform):
                 f"{self.conditions_key!r} spec has {cond_spec.shape[-1]} columns, the "
                 f"graph has {len(self.graph.conditions)} conditions"
             )
+        _check_agent_shape(self.conditions_key, cond_spec.shape, like.shape, cond_spec.shape[-1:])
         slots, n, dev = cond_spec.shape[:-1], self.graph.n_stages, cond_spec.device
         specs = {
             self.stage_key: Categorical(n, shape=(*slots, 1), dtype=torch.long, device=dev),

@@ -3,7 +3,8 @@
 Each is run alone on an env, in a ``Compose`` (after ``StepCounter`` and
 ``StageTransition``), inside ``SerialEnv`` (transform outside and inside the workers),
 inside ``ParallelEnv`` (slow), in a collector, without an env, and through a
-``state_dict`` round trip. ``"stage"`` is ``StageTransition``; the others are reward
+``state_dict`` round trip; in a replay buffer each must refuse, and a per-robot entry
+without the ``[*B, A]`` batch must be named. ``"stage"`` is ``StageTransition``; the others are reward
 schedules (alone, they read the stage from an env that emits it).
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
@@ -94,9 +96,8 @@ def test_collector_carries_the_stage():
     assert env.transform[-1].pop_stage_histogram().sum() > 0
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_without_env(kind):
-    t = make_curriculum(kind)
+def one_step() -> TensorDict:
+    """t and ``"next"`` for 3 worlds of 2 robots, as an env step writes them."""
     nxt = {
         ("agents", "stage_conditions"): torch.ones(3, 2, 6, dtype=torch.bool),
         ("agents", "reward_terms"): torch.ones(3, 2, len(REWARD_TERMS)),
@@ -104,13 +105,42 @@ def test_without_env(kind):
         ("agents", "episode_stage"): torch.full((3, 2, 1), -1),
         "done": torch.zeros(3, 1, dtype=torch.bool),
     }
-    td = TensorDict({("agents", "stage"): torch.full((3, 2, 1), 3), "next": TensorDict(nxt, [3])}, [3])
-    out = t(td)
+    return TensorDict({("agents", "stage"): torch.full((3, 2, 1), 3), "next": TensorDict(nxt, [3])}, [3])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_without_env(kind):
+    t = make_curriculum(kind)
+    out = t(one_step())
     if isinstance(t, StageTransition):
         assert (out["next", "agents", "stage"] == 4).all()
     else:
         assert isinstance(t, StageRewardSchedule)
         assert out["next", "agents", "reward"].shape == (3, 2, 1)
+
+
+@pytest.mark.parametrize("how", ["transform=", "append_transform", "invert"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_in_replay_buffer_is_refused(kind, how):
+    # Its state (and the stage) is per env world; sampled rows have no world identity.
+    t = make_curriculum(kind)
+    rb = ReplayBuffer(storage=LazyTensorStorage(8), batch_size=2, transform=t if how == "transform=" else None)
+    if how != "transform=":
+        rb.append_transform(t, invert=how == "invert")
+    with pytest.raises(RuntimeError, match="cannot run in a replay buffer.*no world identity.*in the env"):
+        rb.extend(one_step())  # the inverted transform runs here
+        rb.sample()
+
+
+@pytest.mark.parametrize("bad_shape", [(3, 1), (3, 4, 1)], ids=["no_agent_dim", "wrong_agent_count"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_agent_entries_need_batch_B_A(kind, bad_shape):
+    td = one_step()
+    key = ("agents", "stage") if kind == "stage" else ("next", "agents", "stage")  # what each reads
+    td.get(key[:-1]).set(key[-1], torch.zeros(bad_shape, dtype=torch.long))
+    expected = rf"agents.stage has shape \[{', '.join(map(str, bad_shape))}\], expected \[3, 2, 1\]"
+    with pytest.raises(ValueError, match=expected + r".*'agents' group must have batch \[\*B, A\]"):
+        make_curriculum(kind)(td)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -27,16 +27,18 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
-from tensordict.nn import InteractionType, set_interaction_type
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import train as train_recipe  # noqa: E402
-from _common import load_checkpoint, make_env, make_models, seconds  # noqa: E402
-from _provenance import provenance  # noqa: E402
-from plots import load_metrics  # noqa: E402
+from pnp.training.config import register  # noqa: E402
+from pnp.training.plots import load_metrics  # noqa: E402
+from pnp.training.provenance import provenance  # noqa: E402
+from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
+from pnp.training.tasks import schedule_of  # noqa: E402
+from pnp.training.trainer import train  # noqa: E402
+
+register()
 
 CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
 FINAL = "stage_share/S4"
@@ -58,30 +60,10 @@ def train_config(cfg: DictConfig, schedule: str, seed: int) -> DictConfig:
 
 def evaluate_policy(run: Path, trials: int, seed: int) -> dict:
     """``trials`` deterministic episodes: success rate and completion time (s) of the successes."""
-    ckpt = load_checkpoint(run / "checkpoint.pt")
-    tcfg = OmegaConf.create(ckpt["cfg"])
-    tcfg.env.num_worlds = min(int(tcfg.env.num_worlds), trials)
-    env = make_env(tcfg.env, tcfg.curriculum, seed)
-    actor, *_ = make_models(tcfg.model, env, tcfg.loss.value_norm, float(tcfg.loss.popart_beta))
-    actor.load_state_dict(ckpt["actor"])
-    n = env.base_env.num_worlds
-    left = torch.full((n,), math.ceil(trials / n))
-    ends = []  # (step, world, success, episode steps), finishing order decides which count
-    td, step = env.reset(), 0
-    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
-        while bool((left > 0).any()):
-            out, td = env.step_and_maybe_reset(actor(td))
-            nxt, step = out["next"], step + 1
-            done = nxt["done"].view(n) & (left > 0)
-            for w in done.nonzero().view(-1).tolist():
-                ends.append((step, w, bool(nxt["success"][w, 0]), int(nxt["step_count"][w, 0])))
-            left -= done.long()
-    env.close()
-    ends = sorted(ends)[:trials]
-    times = [seconds(k) for _, _, ok, k in ends if ok]
-    return {"trials": len(ends), "success_rate": len(times) / len(ends),
-            "completion_time_mean_s": float(np.mean(times)) if times else None,
-            "completion_time_std_s": float(np.std(times)) if times else None}
+    pol = load_policy(run / "checkpoint.pt", trials, seed)
+    summary = summarise(run_trials(pol.env, pol.actor, trials), n_stages=schedule_of(pol.env).n_stages)
+    pol.env.close()
+    return {k: summary[k] for k in ("trials", "success_rate", "completion_time_mean_s", "completion_time_std_s")}
 
 
 def first_majority_in_final(rows: list[dict]) -> int | None:
@@ -158,7 +140,7 @@ def run_ablation(cfg: DictConfig) -> dict:
         results[schedule], curves[schedule] = {}, {}
         for seed in cfg.seeds:
             tcfg = train_config(cfg, schedule, int(seed))
-            if train_recipe.train(tcfg)["stopped_by_signal"]:
+            if train(tcfg)["stopped_by_signal"]:
                 # The run checkpointed; stop here too (a caller sent SIGTERM/SIGINT), or this
                 # process would go on writing into the next runs' folders.
                 raise SystemExit(f"stopped by a signal during {schedule} seed {seed}; rerun to resume")

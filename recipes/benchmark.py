@@ -21,7 +21,7 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _provenance import provenance  # noqa: E402
+from pnp.training.provenance import provenance  # noqa: E402
 
 from pnp.envs.pnp_env import PnPEnv  # noqa: E402
 from pnp.physics import CTRL  # noqa: E402

@@ -25,12 +25,15 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import imageio.v2 as imageio  # noqa: E402
 import torch  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _provenance import provenance  # noqa: E402
+from tensordict.nn import InteractionType, set_interaction_type  # noqa: E402
+
 
 from pnp.envs.pnp_env import PnPEnv  # noqa: E402
 from pnp.render import WorldRenderer  # noqa: E402
 from pnp.scripted import ScriptedPnP  # noqa: E402
+from pnp.training.checkpoint import resolve_checkpoint  # noqa: E402
+from pnp.training.provenance import provenance  # noqa: E402
+from pnp.training.rollout import load_policy  # noqa: E402
 
 
 def render_episode(env, policy, out: str, every: int = 2, width: int = 320, height: int = 240,
@@ -88,15 +91,9 @@ def main(argv=None):
 
 
 def _render_teacher(args) -> dict:
-    from omegaconf import OmegaConf
-    from tensordict.nn import InteractionType, set_interaction_type
-
-    from _common import resolve_checkpoint
-    from evaluate import load_policy
-
     path = resolve_checkpoint(args.checkpoint, "runs")
-    eval_env = OmegaConf.create({"backend": "mujoco", "nthread": 1, "max_episode_steps": None, "start_range": None})
-    env, actor, ckpt, _, folded = load_policy(path, eval_env, 1, args.seed)
+    pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1)
+    env, actor, ckpt, folded = pol.env, pol.actor, pol.ckpt, pol.folded
     for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
             info = render_episode(env, actor, args.out, every=args.every, max_steps=args.max_steps)

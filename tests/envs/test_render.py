@@ -1,8 +1,14 @@
 """Offscreen rendering on the CPU (skipped where EGL/Mesa is not installed)."""
+import sys
+
 import numpy as np
 import pytest
 
 from pnp.envs.pnp_env import PnPEnv
+from tests.training._tiny import ROOT, tiny_train
+
+sys.path.insert(0, str(ROOT / "recipes"))
+import render as render_recipe  # noqa: E402
 
 
 def test_render_frame_shows_the_scene():
@@ -27,11 +33,7 @@ def test_render_a_trained_checkpoint(tmp_path):
         WorldRenderer(PnPEnv(num_worlds=1, nthread=1).backend, 0, width=32, height=32).close()
     except Exception as e:  # noqa: BLE001
         pytest.skip(f"no offscreen GL context: {e}")
-    from tests.recipes.test_train import _train
-
-    import render as render_recipe  # recipes/ is on sys.path after the import above
-
-    _train(tmp_path / "run", "total_iterations=1")
+    tiny_train(tmp_path / "run", "total_iterations=1")
     out = tmp_path / "teacher.gif"
     info = render_recipe.main(["--checkpoint", str(tmp_path / "run"), "--out", str(out), "--tries", "2",
                                "--max-steps", "4", "--every", "2"])

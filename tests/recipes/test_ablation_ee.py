@@ -21,7 +21,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("ablation_ee", overrides=overrides)
     cfg.train = [
-        "env.task=ee_tracking", "env.backend=kinematic", "env.num_worlds=4", "env.max_episode_steps=5",
+        "experiment=ee_tracking_ablation", "env.num_worlds=4", "env.max_episode_steps=5",
         "collect.frames_per_batch=24", "collect.minibatch_size=12", "collect.num_epochs=1", "model.actor_cells=[16]",
         "model.critic_cells=[16]", "logger.backend=csv", "progress=false",
     ]
@@ -60,7 +60,7 @@ def test_a_signal_stops_the_whole_ablation(tmp_path, monkeypatch):
         calls.append(cfg.curriculum.schedule)
         return {"stopped_by_signal": True}
 
-    monkeypatch.setattr(ablation_ee.train_recipe, "train", fake_train)
+    monkeypatch.setattr(ablation_ee, "train", fake_train)
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("ablation_ee", overrides=[f"runs_dir={tmp_path}", f"out={tmp_path / 'a.json'}"])
     with pytest.raises(SystemExit, match="stopped by a signal during dynamic seed 0"):

@@ -1,7 +1,6 @@
 """recipes/sweep.yaml: a sweep wandb accepts, whose every key exists in the training config."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,9 +10,12 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from pnp.stage_graph import pnp_default_reward_config
+from pnp.training.collect import episode_metrics
+from pnp.training.config import register
+
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "recipes"))
-import _common  # noqa: E402
+register()
 
 SWEEP = ROOT / "recipes" / "sweep.yaml"
 DISTRIBUTIONS = {"uniform", "log_uniform_values", "int_uniform", "q_uniform", "normal", "log_uniform", "categorical"}
@@ -53,14 +55,15 @@ def test_swept_keys_exist_in_train_config(sweep, train_cfg):
 
 def test_mu_min_range_is_valid(sweep):
     spec = sweep["parameters"]["curriculum.mu_min"]
-    mu = _common.pnp_default_reward_config()["mu"]
+    mu = pnp_default_reward_config()["mu"]
     assert 0 < spec["min"] and spec["max"] <= min(mu.values())
 
 
 def test_metric_is_logged(sweep):
     n, t, a = 2, 3, 1
-    agents = TensorDict({"episode_stage": torch.full((n, t, a, 1), -1), "reward": torch.zeros(n, t, a, 1)},
+    agents = TensorDict({"episode_stage": torch.full((n, t, a, 1), -1), "reward": torch.zeros(n, t, a, 1),
+                         "stage_one_hot": torch.zeros(n, t, a, 7)},
                         batch_size=(n, t, a))
     flags = {k: torch.zeros(n, t, 1, dtype=torch.bool) for k in ("done", "success")}
     batch = TensorDict({"next": TensorDict({**flags, "agents": agents}, batch_size=(n, t))}, batch_size=(n, t))
-    assert sweep["metric"]["name"] in _common.episode_metrics(batch)
+    assert sweep["metric"]["name"] in episode_metrics(batch)

@@ -1,5 +1,5 @@
-"""Warm starts across set-ups: a single-robot policy into the dual-robot task, a curriculum
-state into a different number of worlds.
+"""Checkpoints, RNG state, and warm starts across set-ups (a single-robot policy into the
+dual-robot task, a curriculum state into a different number of worlds).
 
 The actor (decentralised, shared parameters) has the same shapes for one or two robots.
 The dual critic's first layer sees [own block | neighbour's block]; a single-robot
@@ -8,9 +8,66 @@ what it predicted alone.
 """
 from __future__ import annotations
 
+import os
+import pickle
+import random
+import zipfile
+from pathlib import Path
+
+import numpy as np
 import torch
 
 _FIRST = "mlp.params.0.weight"
+
+
+def rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """Atomic: a run killed while writing keeps its previous checkpoint."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        ckpt = torch.load(path, weights_only=False, map_location="cpu")  # our own files
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as e:
+        raise ValueError(f"checkpoint {path} is unreadable (truncated or not a torch file): {e}") from e
+    missing = {"cfg", "actor", "counters"} - set(ckpt if isinstance(ckpt, dict) else ())
+    if missing:
+        raise ValueError(f"checkpoint {path} lacks {sorted(missing)}: not a checkpoint of recipes/train.py")
+    return ckpt
+
+
+def resolve_checkpoint(spec, runs_root: str | Path) -> Path:
+    """``true``/``latest``: the newest ``checkpoint.pt`` under ``runs_root``; a run folder; or a file."""
+    if spec is True or str(spec).lower() in ("true", "latest"):
+        found = sorted(Path(runs_root).glob("**/checkpoint.pt"), key=lambda p: p.stat().st_mtime)
+        if not found:
+            raise FileNotFoundError(f"no checkpoint.pt under {Path(runs_root).resolve()}")
+        return found[-1]
+    path = Path(str(spec))
+    if path.is_dir():
+        path = path / "checkpoint.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    return path
 
 
 def _widen(old: torch.Tensor, shape: torch.Size, key: str) -> torch.Tensor:

@@ -1,6 +1,6 @@
-"""Training plots from a run's ``metrics.jsonl``; train.py calls this at the end of a run.
+"""Training plots from a run's ``metrics.jsonl``; the trainer calls this at the end of a run.
 
-    python recipes/plots.py runs/<run>/metrics.jsonl [out_dir]
+    python -m pnp.training.plots runs/<run>/metrics.jsonl [out_dir]
 
 Writes ``mean_end_stage.png`` (mean end-of-episode stage vs iteration), ``stage_shares.png``
 (share of episodes ending in each stage, stacked) and ``rho.png`` (mean rho_j per term;

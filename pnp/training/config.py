@@ -1,0 +1,183 @@
+"""The training configuration, declared once: dataclasses that hydra validates every YAML
+file and command-line override against (``recipes/config/``), and that old checkpoints'
+configurations are migrated into.
+
+Defaults live here and nowhere else: code reads ``cfg.<group>.<key>`` without fallbacks.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from pnp.layout import START_RANGE
+
+
+@dataclass
+class KinematicOptions:
+    """Options of the kinematic backend only; a MuJoCo env refuses them (real contacts)."""
+
+    box_blocks_base: bool = False  # a base does not step into a box it does not hold
+    grasp_holds: bool = False  # two robots: a closed gripper keeps its bar, its EE follows the grasp point
+
+
+@dataclass
+class EnvConfig:
+    task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot)
+    backend: str = "mujoco"  # mujoco | kinematic
+    num_worlds: int = 64
+    num_robots: int = 1
+    kinematic: Optional[KinematicOptions] = None  # set by backend=kinematic
+    boxes: Optional[str] = None  # null: the robot count's boxes (paper); single | dual: those assets
+    nthread: Optional[int] = 2
+    max_episode_steps: Optional[int] = None  # null: the paper's 45 s (450 steps)
+    start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
+    # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.
+    terminate_on_success: bool = False
+    handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
+    handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
+    grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
+
+
+@dataclass
+class CurriculumConfig:
+    schedule: str = "dynamic"  # dynamic | liu_max | liu_min | fixed
+    # rho_j climbs from mu_min = 0.1 to the largest mu_j = 100 in 4 episodes whose lambda is
+    # its stage (the paper says only K > 1); with K = 2 the S2 terms took ~100 iterations to
+    # reach mu, with K = 8 ~40.
+    K: float = 8.0
+    mu_min: float = 0.1  # <= min mu_j = 0.2 (grab action), as Eq. 2 requires
+    final_after: int = 5
+    # Not in the paper (0 = Eq. 2): terms of stages below lambda keep rho_j >= this share of
+    # mu_j. Eq. 2 divides the ready-pose rho by K per episode that peaks in S1.
+    completed_floor: float = 0.0
+    # lambda(e) of Eq. 2: peak (highest stage of the episode) | final (stage it ends in).
+    # Under final, grasp-drop-regrasp episodes ended in S0-S2 by chance and the S2 terms
+    # stayed at mu_min for 1600 iterations; under peak lifting followed within 30.
+    episode_stage: str = "peak"
+    # null: the task's backward edges; else [from, to] stage names, e.g. without
+    # placed -> on_goal (MuJoCo's grasp flickers with the box on the floor).
+    backward_edges: Optional[List[Any]] = None
+    stage_rewards: bool = True  # false: control run with R_fixed only (stage terms weighted 0)
+    fixed_weights: Dict[str, float] = field(default_factory=dict)  # R_fixed weights by term name
+
+
+@dataclass
+class ModelConfig:
+    actor_cells: List[int] = field(default_factory=lambda: [256, 256])
+    critic_cells: List[int] = field(default_factory=lambda: [256, 256])
+    init_scale: float = 1.0  # policy std (pre-tanh) at initialisation
+    grasp_dist: str = "bernoulli"  # bernoulli (losses/distributions.py) | tanh_normal (a probability)
+    min_scale: float = 0.0  # > 0: floor on every continuous entry's pre-tanh std
+    # > 0: floor on the grasp entry's pre-tanh std, tanh_normal gripper only (the Bernoulli's
+    # ignores its scale); the single-robot chain began with it (docs/train_single/LINEAGE.md).
+    grasp_min_scale: float = 0.0
+    max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
+    obs_norm: bool = True  # running observation normalisation (in the checkpoint)
+
+
+@dataclass
+class LossConfig:
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.005
+    critic_coeff: float = 1.0
+    loss_critic_type: str = "l2"
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    value_norm: str = "popart"  # popart | none
+    popart_beta: float = 0.98  # per-iteration EMA of the return statistics (~50 iterations)
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 1.0e-3  # initial lr when adaptive
+    lr_schedule: str = "adaptive"  # adaptive (KL-driven, as rsl_rl) | fixed
+    desired_kl: float = 0.01
+    min_lr: float = 1.0e-5
+    max_lr: float = 1.0e-2
+    max_grad_norm: float = 1.0
+
+
+@dataclass
+class CollectConfig:
+    frames_per_batch: int = 2048  # worlds x steps per iteration
+    num_epochs: int = 5
+    minibatch_size: int = 512
+    # Not in the paper: this share of episodes first takes the policy's mean action for
+    # 1..roll_in_max_steps steps, then samples (pnp.training.collect.MeanRollIn).
+    roll_in_share: float = 0.0
+    roll_in_max_steps: int = 200
+    # Start every world's first episode at a random step of env.max_episode_steps.
+    desync_episodes: bool = False
+
+
+@dataclass
+class LoggerConfig:
+    backend: str = "wandb"  # wandb | csv
+    project: str = "pnp-curriculum"
+    exp_name: Optional[str] = None  # null: <backend>_<robots>r_<schedule>_s<seed>
+    offline: bool = True
+
+
+@dataclass
+class TrainConfig:
+    seed: int = 0
+    total_iterations: int = 3000
+    max_wall_hours: Optional[float] = None  # stop (with a checkpoint) after this much wall time
+    checkpoint_every_min: float = 5.0
+    resume: Any = False  # true/latest: newest runs/**/checkpoint.pt; or a run folder / file
+    warm_start: Optional[str] = None  # checkpoint whose actor, critic and Adam state initialise this run
+    # Also its curriculum state. Not for a new task: a slot in the final stage keeps rho = mu.
+    warm_start_curriculum: bool = False
+    warm_start_fold_constant: bool = False  # blind the nets to inputs that never moved in the source run
+    out_dir: Optional[str] = None  # null: the hydra run folder
+    runs_root: str = "runs"
+    progress: bool = True
+    env: EnvConfig = field(default_factory=EnvConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    collect: CollectConfig = field(default_factory=CollectConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+# Keys that old checkpoints hold and the schema dropped: each with the only value that
+# leaves behaviour unchanged (any other value is refused, never silently dropped).
+_RETIRED = {
+    ("env", "lone_holder_pinned"): False,
+    ("loss", "reach_coeff"): 0.0,
+}
+_MOVED_TO_KINEMATIC = ("box_blocks_base", "grasp_holds")
+
+
+def migrate(saved: dict) -> DictConfig:
+    """A checkpoint's stored configuration as a validated :class:`TrainConfig`.
+
+    Checkpoints written before the schema lack keys that have defaults now (and had other
+    code defaults then: ``terminate_on_success`` True, ``episode_stage`` final,
+    ``grasp_dist`` tanh_normal), hold the kinematic options at the top of ``env``, and
+    may hold retired keys.
+    """
+    saved = OmegaConf.to_container(OmegaConf.create(saved), resolve=True)
+    env, cur, model = saved.setdefault("env", {}), saved.setdefault("curriculum", {}), saved.setdefault("model", {})
+    for (group, key), neutral in _RETIRED.items():
+        value = saved.get(group, {}).pop(key, neutral)
+        if value not in (neutral, None):
+            raise ValueError(f"checkpoint config {group}.{key}={value!r}: that option was removed "
+                             f"(only {neutral!r} is still supported)")
+    kin = {k: bool(env.pop(k)) for k in _MOVED_TO_KINEMATIC if k in env}
+    if env.get("backend") == "kinematic" and "kinematic" not in env:
+        env["kinematic"] = kin
+    # The code defaults of the recipes before the schema, for keys such checkpoints lack.
+    env.setdefault("terminate_on_success", True)
+    cur.setdefault("episode_stage", "final")
+    model.setdefault("grasp_dist", "tanh_normal")
+    return OmegaConf.merge(OmegaConf.structured(TrainConfig), saved)
+
+
+def register() -> None:
+    """Register the schema with hydra's ConfigStore as ``train_schema`` (train.yaml's base)."""
+    ConfigStore.instance().store(name="train_schema", node=TrainConfig)

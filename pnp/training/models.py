@@ -1,0 +1,225 @@
+"""The teacher's networks: a decentralised actor and a critic (centralised for two robots)
+over [normalised observation | stage one-hot], with a PopArt value head."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.envs import EnvBase
+from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, TanhNormal
+
+from pnp.losses.distributions import TanhNormalGripper
+from pnp.task import ACTION_NAMES
+from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, VALUE
+
+GRASP_ENTRY = ACTION_NAMES.index("grasp")
+
+
+class ObsNorm(nn.Module):
+    """Running mean and std of the observation (Chan's parallel update), clipped to +-5.
+
+    Positions in metres spread over ~10 m next to unit-scale flags; normalised inputs
+    speed PPO up markedly. Moves only in :meth:`update`, once per iteration after the
+    PPO epochs, so a batch is collected and trained on with the same statistics.
+    """
+
+    def __init__(self, n: int, clip: float = 5.0):
+        super().__init__()
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(n))
+        self.register_buffer("var", torch.ones(n))
+        self.register_buffer("count", torch.zeros(()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.mean) / self.var.sqrt().clamp(min=1e-2)).clamp(-self.clip, self.clip)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        x = x.reshape(-1, x.shape[-1]).double()
+        n, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_((self.var * self.count + var * n + delta**2 * self.count * n / total) / total)
+        self.mean.add_(delta * n / total)
+        self.count.fill_(total)
+
+
+class AgentNet(nn.Module):
+    """An MLP with shared parameters over [normalised observation | stage one-hot] per agent:
+    the teacher sees its stage.
+
+    ``centralised``: agent i's input is its own block followed by the others' (in order
+    i+1, i+2, ...), so every agent's output depends on all inputs but stays its own. Why
+    not MultiAgentMLP(centralized=True, share_params=True): it gives all agents one shared
+    value, while each robot here has its own stage and reward.
+    """
+
+    def __init__(self, n_in: int, n_out: int, n_agents: int, centralised: bool, cells, head: nn.Module | None = None,
+                 obs_norm: ObsNorm | None = None):
+        super().__init__()
+        self.n_agents, self.centralised = n_agents, centralised and n_agents > 1
+        self.obs_norm = obs_norm if obs_norm is not None else nn.Identity()
+        width = n_in * n_agents if self.centralised else n_in
+        self.mlp = MultiAgentMLP(n_agent_inputs=width, n_agent_outputs=n_out, n_agents=n_agents, centralized=False,
+                                 share_params=True, num_cells=list(cells), activation_class=nn.Tanh)
+        self.head = head if head is not None else nn.Identity()
+
+    def forward(self, obs: torch.Tensor, stage: torch.Tensor):
+        x = torch.cat([self.obs_norm(obs), stage], -1)
+        if self.centralised:  # [N, A, k] -> [N, A, A*k]: own block first
+            x = torch.cat([x.roll(-k, dims=-2) for k in range(self.n_agents)], -1)
+        return self.head(self.mlp(x))
+
+
+@torch.no_grad()
+def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int]:
+    """Warm start into an env where inputs that never moved now move: keep every net's
+    function on the old data, but make it blind to those inputs until it learns them.
+
+    Observation entries with running variance below ``tol`` (the kinematic backend's wrist
+    roll, pad touch before any grasp) would hit the +-clip after normalisation the first
+    time they change. Their first-layer weights are folded into the bias at the old
+    (constant) input value and zeroed; their statistics become mean 0, variance 1.
+    Returns the folded indices.
+    """
+    idx = (obs_norm.var < tol).nonzero().view(-1)
+    if not len(idx):
+        return []
+    const = obs_norm(obs_norm.mean.float().unsqueeze(0))[0, idx]  # the normalised old value
+    for net in nets:
+        w, b = net.mlp.params["0", "weight"], net.mlp.params["0", "bias"]
+        per_agent = w.shape[-1] // net.n_agents if net.centralised else w.shape[-1]
+        for start in range(0, w.shape[-1], per_agent):  # [obs | stage] per agent when centralised
+            cols = start + idx
+            b += w[..., cols] @ const.to(w)
+            w[..., cols] = 0.0
+    obs_norm.mean[idx], obs_norm.var[idx] = 0.0, 1.0
+    return idx.tolist()
+
+
+class ScaleBounds(nn.Module):
+    """Bounds on the policy's pre-tanh std, per action entry, around a param extractor.
+
+    Why the floor: PPO moves the mean by a fraction of the std per iteration, so an entry
+    whose std has collapsed barely moves; a sharpened warm start keeps exploring. Why the
+    ceiling: with no entropy term two dual-robot runs grew the std from ~0.4 to 1-42 and
+    every squashed command became a coin flip between its bounds.
+    """
+
+    def __init__(self, extractor: nn.Module, floor: torch.Tensor, ceiling: torch.Tensor | None = None):
+        super().__init__()
+        self.extractor = extractor
+        self.register_buffer("floor", floor, persistent=False)  # config, not state
+        self.register_buffer("ceiling", ceiling, persistent=False)
+
+    def forward(self, x: torch.Tensor):
+        loc, scale = self.extractor(x)
+        scale = torch.maximum(scale, self.floor)
+        return loc, scale if self.ceiling is None else torch.minimum(scale, self.ceiling)
+
+
+class PopArt(nn.Module):
+    """Critic head: an affine map in normalised space, read out at the real return scale.
+
+    Why: the curriculum moves reward scales by orders of magnitude within a run (rho_j
+    from mu_min = 0.1 up to mu_j = 100), so returns drift from ~1 to ~1e3. PopArt (van
+    Hasselt et al. 2016) keeps the regression target at unit scale, and when its statistics
+    move it rescales this head so the values it predicts stay the same ("preserving
+    outputs"), which plain running return normalisation does not. Statistics move once per
+    iteration (:meth:`update`), never inside the loss.
+    """
+
+    def __init__(self, beta: float):
+        super().__init__()
+        self.stats = PopArtValueNorm(shape=1, beta=beta)
+        self.weight = nn.Parameter(torch.ones(1))
+        self.bias = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.stats.denormalize(x * self.weight + self.bias)
+
+    @torch.no_grad()
+    def update(self, targets: torch.Tensor) -> None:
+        first = bool(self.stats.debiasing_term == 0)  # nothing to preserve yet
+        m0, s0 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
+        self.stats.update(targets.reshape(-1, 1))
+        if not first:
+            m1, s1 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
+            self.weight.mul_(s0 / s1)
+            self.bias.copy_((s0 * self.bias + m0 - m1) / s1)
+
+
+@dataclass
+class Models:
+    """What :func:`make_models` builds; ``obs_norm`` is shared by actor and critic."""
+
+    actor: ProbabilisticActor
+    critic: TensorDictModule
+    popart: PopArt | None
+    obs_norm: ObsNorm | None
+
+    @property
+    def actor_net(self) -> AgentNet:
+        return self.actor.module[0].module
+
+    @property
+    def critic_net(self) -> AgentNet:
+        return self.critic.module
+
+
+def dist_from_params(actor: ProbabilisticActor, td: TensorDictBase):
+    """The action distribution of the loc/scale already in ``td`` (no network forward)."""
+    return actor.module[-1].get_dist(td)
+
+
+def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
+    head = NormalParamExtractor(scale_mapping=f"biased_softplus_{float(model_cfg.init_scale)}")
+    floor = torch.full((n_act,), float(model_cfg.min_scale))
+    if model_cfg.grasp_min_scale > 0:
+        if model_cfg.grasp_dist != "tanh_normal":
+            raise ValueError(f"model.grasp_min_scale={model_cfg.grasp_min_scale} has no effect with "
+                             f"model.grasp_dist={model_cfg.grasp_dist!r} (its gripper ignores the scale)")
+        floor[GRASP_ENTRY] = max(float(floor[GRASP_ENTRY]), float(model_cfg.grasp_min_scale))
+    ceiling = None
+    if model_cfg.max_scale is not None:
+        ceiling = torch.full_like(floor, float(model_cfg.max_scale))
+        ceiling[GRASP_ENTRY] = math.inf  # the Bernoulli gripper's entry is a logit, its scale unused
+        if (ceiling < floor).any():
+            raise ValueError(f"model.max_scale={model_cfg.max_scale} is below model.min_scale={model_cfg.min_scale}")
+    if (floor > 0).any() or ceiling is not None:
+        head = ScaleBounds(head, floor, ceiling)
+    return head
+
+
+def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Models:
+    """Decentralised actor with shared parameters; critic centralised iff there are 2 robots."""
+    n_agents = env.observation_spec[OBS].shape[-2]
+    n_obs = env.observation_spec[OBS].shape[-1]
+    n_in = n_obs + env.observation_spec[STAGE_ONE_HOT].shape[-1]
+    spec = env.full_action_spec_unbatched[ACTION]
+    obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None
+    actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
+                         head=_param_head(model_cfg, spec.shape[-1]))
+    dist_kwargs = {"low": spec.space.low, "high": spec.space.high}
+    if model_cfg.grasp_dist == "bernoulli":
+        dist_cls, dist_kwargs["gripper_index"] = TanhNormalGripper, GRASP_ENTRY
+    elif model_cfg.grasp_dist == "tanh_normal":
+        dist_cls = TanhNormal
+    else:
+        raise ValueError(f"model.grasp_dist must be 'bernoulli' or 'tanh_normal', got {model_cfg.grasp_dist!r}")
+    actor = ProbabilisticActor(
+        TensorDictModule(actor_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[LOC, SCALE]),
+        in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=dist_cls,
+        distribution_kwargs=dist_kwargs, return_log_prob=True, log_prob_key=LOG_PROB,
+    )
+    if loss_cfg.value_norm not in ("popart", "none"):
+        raise ValueError(f"loss.value_norm must be 'popart' or 'none', got {loss_cfg.value_norm!r}")
+    popart = PopArt(float(loss_cfg.popart_beta)) if loss_cfg.value_norm == "popart" else None
+    critic_net = AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells, head=popart, obs_norm=obs_norm)
+    critic = TensorDictModule(critic_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[VALUE])
+    return Models(actor, critic, popart, obs_norm)

@@ -1,0 +1,59 @@
+"""One PPO update of a collected batch, and the KL-adaptive learning rate."""
+from __future__ import annotations
+
+from collections import defaultdict
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from pnp.losses.mappo import PopArtMAPPOLoss
+from pnp.training.keys import ROLL_IN
+
+LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "entropy", "explained_variance", "clip_fraction",
+          "kl_approx", "kl")
+
+
+def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
+    """KL-adaptive step size (as rsl_rl): divide by 1.5 when the KL exceeds twice the
+    target, multiply by 1.5 when it is below half, within [min_lr, max_lr]. A fixed lr is
+    too large or too small as the policy sharpens."""
+    if ocfg.lr_schedule == "fixed":
+        return
+    if ocfg.lr_schedule != "adaptive":
+        raise ValueError(f"optim.lr_schedule must be 'adaptive' or 'fixed', got {ocfg.lr_schedule!r}")
+    for g in optim.param_groups:
+        if kl > 2.0 * ocfg.desired_kl:
+            g["lr"] = max(g["lr"] / 1.5, float(ocfg.min_lr))
+        elif kl < 0.5 * ocfg.desired_kl:
+            g["lr"] = min(g["lr"] * 1.5, float(ocfg.max_lr))
+
+
+def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.Optimizer,
+               cfg: DictConfig) -> dict[str, float]:
+    """GAE once per iteration, PopArt statistics once, then epochs of shuffled minibatches;
+    returns the means of the logged loss entries (``train/...``)."""
+    with torch.no_grad():
+        loss.value_estimator(batch)
+    loss.update_value_norm(batch)
+    flat = batch.reshape(-1)
+    if ROLL_IN in flat.keys():  # roll-in actions were the mean, not drawn: no policy gradient from them
+        flat = flat[~flat[ROLL_IN].reshape(-1)]
+    params = [p for g in optim.param_groups for p in g["params"]]
+    sums, n = defaultdict(float), 0
+    frames = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
+    for _ in range(int(cfg.collect.num_epochs) if frames else 0):
+        for idx in torch.randperm(frames).split(int(cfg.collect.minibatch_size)):
+            out = loss(flat[idx])
+            adapt_lr(optim, float(out["kl"]), cfg.optim)  # the lr of this very step
+            total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            optim.zero_grad(set_to_none=True)
+            total.backward()
+            sums["grad_norm"] += float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))
+            optim.step()
+            for k in LOGGED:
+                if k in out.keys():
+                    sums[k] += float(out[k].detach().float().mean())
+            n += 1
+    # n == 0 (every frame a roll-in) leaves no sums to divide.
+    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}

@@ -1,0 +1,193 @@
+"""One rollout API for everything that runs a trained policy: evaluation, the ablation,
+rendering and the analysis scripts.
+
+:func:`load_policy` puts a checkpoint's actor in an evaluation env (with env overrides);
+:func:`run_trials` runs exactly N deterministic episodes and classifies each failure;
+:func:`summarise` turns the trial records into the Table I figures.
+
+Failure causes: every failed trial gets exactly one, the first that applies of
+
+* ``fall``: the episode terminated without success because a robot fell;
+* ``diverged``: the physics diverged and the env restarted the world (MuJoCo only);
+* ``dropped_box``: the box was lifted at some step (``object_lifted`` held for some
+  robot), success never came, and at the last step no robot holds it and its centre is
+  at least ``GOAL_RADIUS`` from the goal;
+* ``timeout``: every other failure (box never lifted, still held, or set down inside the
+  goal but not released).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import InteractionType, ProbabilisticTensorDictSequential, set_interaction_type
+from torchrl.envs import TransformedEnv
+from tqdm import tqdm
+
+from pnp.layout import START_RANGE
+from pnp.scene import GOAL_RADIUS
+from pnp.task import ACTION_NAMES
+from pnp.terms import CONDITIONS, REWARD_TERMS, STAGES
+from pnp.training.checkpoint import load_checkpoint, seed_everything
+from pnp.training.collect import seconds
+from pnp.training.config import migrate
+from pnp.training.keys import ACTION, STAGE
+from pnp.training.models import ObsNorm, dist_from_params, fold_constant_inputs, make_models
+from pnp.training.tasks import make_env
+
+LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
+FALL = REWARD_TERMS.index("fall")
+CAUSES = ("fall", "diverged", "dropped_box", "timeout")
+_AI = ACTION_NAMES.index
+ACTION_GROUPS = {"base": slice(_AI("base_vx"), _AI("base_wz") + 1), "ee": slice(_AI("ee_x"), _AI("ee_yaw") + 1),
+                 "grip": slice(_AI("grasp"), _AI("grasp") + 1), "all": slice(0, len(ACTION_NAMES))}
+
+
+@dataclass
+class LoadedPolicy:
+    """A checkpoint's actor in the env it is evaluated in."""
+
+    env: TransformedEnv
+    actor: ProbabilisticTensorDictSequential
+    ckpt: dict
+    cfg: DictConfig  # the training configuration (migrated), with ``cfg.env`` the evaluation env's
+    folded: list[int] = field(default_factory=list)  # observation entries blinded by the backend change
+
+
+def load_policy(checkpoint: str | Path, num_worlds: int, seed: int, **env_overrides) -> LoadedPolicy:
+    """The checkpoint's actor in an evaluation env: the training env, changed to terminate
+    at success, close the gripper by threshold and start from the paper's layouts, then by
+    ``env_overrides`` (``backend``, ``start_range``, ``max_episode_steps``, ``nthread``, ...;
+    ``None`` values keep the default)."""
+    ckpt = load_checkpoint(Path(checkpoint))
+    cfg = migrate(ckpt["cfg"])
+    trained_backend = cfg.env.backend
+    env = cfg.env
+    env.num_worlds, env.max_episode_steps = int(num_worlds), None
+    env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
+    env.grasp_sampling = "threshold"  # the deterministic policy's gripper command
+    env.terminate_on_success = True  # a trial ends at its success (completion time)
+    for key, value in env_overrides.items():
+        if key not in env:
+            raise ValueError(f"load_policy: unknown env override {key!r}; env keys are {sorted(env)}")
+        if value is not None:
+            OmegaConf.update(env, key, value, merge=False)
+    if env.backend != "kinematic":
+        env.kinematic = None  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
+    seed_everything(seed)
+    tenv = make_env(env, cfg.curriculum, seed)
+    models = make_models(cfg.model, cfg.loss, tenv)
+    models.actor.load_state_dict(ckpt["actor"])
+    folded = []
+    if env.backend != trained_backend and isinstance(models.obs_norm, ObsNorm):
+        # Inputs constant on the training backend (the kinematic one has no wrist roll, box
+        # tilt or tilt rates) move here; their untrained first-layer weights would scramble
+        # the policy. Folding keeps its function on the training data and blinds it to them.
+        folded = fold_constant_inputs(models.obs_norm, [models.actor_net])
+    return LoadedPolicy(tenv, models.actor, ckpt, cfg, folded)
+
+
+def _act(actor, td: TensorDictBase, groups: tuple[str, ...]) -> TensorDictBase:
+    """The mean action, with the entries of ``groups`` replaced by a draw from the policy."""
+    td = actor(td)
+    if not groups:
+        return td
+    drawn = dist_from_params(actor, td).sample()  # from the loc/scale just written: no second forward
+    action = td[ACTION].clone()
+    for g in groups:
+        action[..., ACTION_GROUPS[g]] = drawn[..., ACTION_GROUPS[g]]
+    return td.set(ACTION, action)
+
+
+def check_groups(sample) -> tuple[str, ...]:
+    groups = tuple(sample or ())
+    bad = [g for g in groups if g not in ACTION_GROUPS]
+    if bad:
+        raise ValueError(f"sample: unknown action group(s) {bad}; choose from {sorted(ACTION_GROUPS)}")
+    return groups
+
+
+def classify_failures(nxt: TensorDictBase, worlds: torch.Tensor, lifted: torch.Tensor) -> list[str | None]:
+    """The failure cause of each world in ``worlds`` whose episode ended at this step
+    (``None`` for a success); ``lifted`` [N]: the box was lifted in the episode."""
+    agents = nxt["agents"]
+    if "object" in agents.keys():  # pick-and-place
+        box_goal = (agents["object"][worlds, 0, :2] - agents["goal"][worlds, 0, :2]).norm(dim=-1)
+        held = agents["stage_conditions"][worlds][..., GRABBED].any(-1)
+        dropped = lifted[worlds] & ~held & (box_goal >= GOAL_RADIUS)
+        fell = agents["reward_terms"][worlds][..., FALL].bool().any(-1)
+    else:  # no box, no fall term (EE tracking)
+        dropped = fell = torch.zeros(len(worlds), dtype=torch.bool)
+    causes = []
+    for i, w in enumerate(worlds.tolist()):
+        if bool(nxt["success"][w, 0]):
+            causes.append(None)
+            continue
+        flags = {"fall": bool(fell[i]) and bool(nxt["terminated"][w, 0]), "diverged": bool(nxt["diverged"][w, 0]),
+                 "dropped_box": bool(dropped[i])}
+        causes.append(next((c for c in CAUSES[:-1] if flags[c]), "timeout"))
+    return causes
+
+
+def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, sample=None) -> list[dict]:
+    """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order
+    (``sample``: action groups drawn from the policy instead, a diagnostic).
+
+    With W worlds each world runs ceil(N / W) episodes; the first N to finish (by step,
+    then world index) are the trials. One record per trial: world, end step, success,
+    cause, steps, end stage and peak stage (highest of any robot)."""
+    groups = check_groups(sample)
+    n_worlds = env.base_env.num_worlds
+    per_world = math.ceil(trials / n_worlds)
+    count = torch.zeros(n_worlds, dtype=torch.long)
+    lifted = torch.zeros(n_worlds, dtype=torch.bool)
+    peak = torch.zeros(n_worlds, dtype=torch.long)
+    records, step = [], 0
+    bar = tqdm(total=trials, disable=not progress, desc="trials")
+    td = env.reset()
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        while bool((count < per_world).any()):
+            td = _act(actor, td, groups)
+            out, td = env.step_and_maybe_reset(td)
+            nxt, step = out["next"], step + 1
+            if "object" in nxt["agents"].keys():  # pick-and-place: the box's lift
+                lifted |= nxt["agents", "stage_conditions"][..., LIFTED].any(-1)
+            stage = nxt[STAGE].reshape(n_worlds, -1).max(-1).values
+            peak = torch.maximum(peak, stage)
+            done = nxt["done"].view(n_worlds)
+            worlds = (done & (count < per_world)).nonzero().view(-1)
+            if len(worlds):
+                for w, cause in zip(worlds.tolist(), classify_failures(nxt, worlds, lifted)):
+                    records.append({"world": w, "end_step": step, "success": cause is None, "cause": cause,
+                                    "steps": int(nxt["step_count"][w, 0]), "end_stage": int(stage[w]),
+                                    "peak_stage": int(peak[w])})
+                count[worlds] += 1
+                bar.update(min(len(worlds), max(0, trials - bar.n)))
+            lifted &= ~done
+            peak[done] = 0
+    bar.close()
+    records.sort(key=lambda r: (r["end_step"], r["world"]))
+    return records[:trials]
+
+
+def summarise(records: list[dict], n_stages: int = len(STAGES)) -> dict:
+    """Success rate, completion time (mean and population std over successes), failure
+    causes, and end/peak stage counts of the trial records."""
+    times = np.array([seconds(r["steps"]) for r in records if r["success"]])
+    stages = np.bincount([r["end_stage"] for r in records], minlength=n_stages)
+    peaks = np.bincount([r["peak_stage"] for r in records], minlength=n_stages)
+    return {
+        "trials": len(records),
+        "success_rate": float(np.mean([r["success"] for r in records])) if records else math.nan,
+        "completion_time_mean_s": float(times.mean()) if len(times) else None,
+        "completion_time_std_s": float(times.std()) if len(times) else None,
+        "failure_causes": {c: sum(r["cause"] == c for r in records) for c in CAUSES},
+        "mean_end_stage": float(np.mean([r["end_stage"] for r in records])) if records else math.nan,
+        "end_stage_counts": {f"S{i}": int(c) for i, c in enumerate(stages)},
+        "peak_stage_counts": {f"S{i}": int(c) for i, c in enumerate(peaks)},
+    }

@@ -1,0 +1,113 @@
+"""Tasks the trainer knows: each a stage graph, a reward configuration and an env, wrapped
+as StepCounter -> StageTransition -> reward schedule."""
+from __future__ import annotations
+
+from typing import Callable
+
+from omegaconf import DictConfig
+from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
+
+from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+from pnp.ee_task import ee_reward_config, ee_stage_graph
+from pnp.envs.ee_tracking_env import EETrackingEnv
+from pnp.envs.pnp_env import PnPEnv
+from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
+from pnp.training.keys import STAGE_ONE_HOT
+from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
+
+BACKENDS = ("mujoco", "kinematic")
+BOX_SETS = {None: None, "single": SINGLE_ROBOT_BOXES, "dual": DUAL_ROBOT_BOXES}
+
+
+def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
+    if env_cfg.boxes not in BOX_SETS:
+        raise ValueError(f"env.boxes must be null, 'single' or 'dual', got {env_cfg.boxes!r}")
+    return PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots), backend=env_cfg.backend,
+                  backend_options=kinematic_options(env_cfg), seed=int(seed), nthread=env_cfg.nthread,
+                  start_range=tuple(env_cfg.start_range), grasp_sampling=env_cfg.grasp_sampling,
+                  terminate_on_success=bool(env_cfg.terminate_on_success), handle_order=env_cfg.handle_order,
+                  handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes])
+
+
+def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
+    if int(env_cfg.num_robots) != 1:
+        raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
+    kinematic_options(env_cfg)  # refuses kinematic options on MuJoCo here too
+    return EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=env_cfg.backend, seed=int(seed),
+                         nthread=env_cfg.nthread)
+
+
+# env.task -> (stage graph, reward-schedule kwargs, env): what the trainer needs of a task.
+TASKS: dict[str, tuple[Callable[[], StageGraph], Callable[[], dict], Callable[[DictConfig, int], EnvBase]]] = {
+    "pnp": (pnp_default_stage_graph, pnp_default_reward_config, _pnp_env),
+    "ee_tracking": (ee_stage_graph, ee_reward_config, _ee_tracking_env),
+}
+
+
+def kinematic_options(env_cfg: DictConfig) -> dict | None:
+    """``env.kinematic`` as backend options; a MuJoCo run refuses any that is switched on
+    (they stand in for contacts MuJoCo simulates)."""
+    if env_cfg.backend not in BACKENDS:
+        raise ValueError(f"env.backend must be one of {BACKENDS}, got {env_cfg.backend!r}")
+    opts = {k: True for k, v in dict(env_cfg.kinematic or {}).items() if v}
+    if env_cfg.backend != "kinematic":
+        if opts:
+            raise ValueError(f"env.kinematic options {sorted(opts)} apply to the kinematic backend only; this run "
+                             f"uses env.backend={env_cfg.backend!r} (drop them, or set env.kinematic=null)")
+        return None
+    return opts or None
+
+
+def _task(env_cfg: DictConfig) -> tuple:
+    if env_cfg.task not in TASKS:
+        raise ValueError(f"env.task must be one of {sorted(TASKS)}, got {env_cfg.task!r}")
+    return TASKS[env_cfg.task]
+
+
+def schedule_args(cur: DictConfig, task: str = "pnp") -> tuple[str, dict]:
+    """Name and kwargs of ``make_reward_schedule`` for a ``curriculum`` config."""
+    cfg = TASKS[task][1]()
+    over = dict(cur.fixed_weights or {})
+    unknown = sorted(set(over) - set(cfg["fixed_weights"]))
+    if unknown:
+        raise ValueError(f"curriculum.fixed_weights names unknown terms {unknown}; the R_fixed terms of "
+                         f"{task!r} are {sorted(cfg['fixed_weights'])}")
+    cfg["fixed_weights"].update({k: float(v) for k, v in over.items()})
+    if not cur.stage_rewards:
+        # Control run: only R_fixed; every stage-wise term becomes a fixed term of weight 0.
+        cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})
+        cfg.update(term_stage={}, mu={})
+        return "fixed", cfg
+    cfg.update(K=float(cur.K), mu_min=float(cur.mu_min), final_after=int(cur.final_after),
+               completed_floor=float(cur.completed_floor))
+    return str(cur.schedule), cfg
+
+
+def stage_graph(cur_cfg: DictConfig, task: str = "pnp") -> StageGraph:
+    """The task's stage graph, with ``curriculum.backward_edges`` (a list of [from, to]
+    stage names or indices) in place of its own backward edges when that is set."""
+    graph = TASKS[task][0]()
+    if cur_cfg.backward_edges is None:
+        return graph
+    pairs = [tuple(e) for e in cur_cfg.backward_edges]
+    bad = [e for e in pairs if len(e) != 2]
+    if bad:
+        raise ValueError(f"curriculum.backward_edges needs [from, to] pairs, got {bad}")
+    return StageGraph(graph.stages, graph.conditions, tuple(pairs))
+
+
+def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> TransformedEnv:
+    """The ``env.task`` env wrapped in StepCounter -> StageTransition -> reward schedule."""
+    make_base = _task(env_cfg)[2]
+    name, sched = schedule_args(cur_cfg, env_cfg.task)
+    return TransformedEnv(make_base(env_cfg, seed), Compose(
+        # Before StageTransition: a shorter episode limit sets done, which ends the stage.
+        StepCounter(max_steps=env_cfg.max_episode_steps),
+        StageTransition(stage_graph(cur_cfg, env_cfg.task), one_hot_key=STAGE_ONE_HOT,
+                        episode_stage=str(cur_cfg.episode_stage)),
+        make_reward_schedule(name, **sched),
+    ))
+
+
+def schedule_of(env: TransformedEnv) -> StageRewardSchedule:
+    return env.transform[-1]

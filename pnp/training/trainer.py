@@ -1,0 +1,238 @@
+"""The on-policy runner: builds env, models, loss and optimiser from a :class:`TrainConfig`,
+collects, updates, logs, checkpoints, resumes bit for bit and warm-starts.
+
+A resumed run continues in its checkpoint's folder: checkpoints are taken at iteration
+boundaries and hold everything that moves (weights, Adam, curriculum, env state, the
+carried tensordict, all RNGs).
+"""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
+from tqdm import tqdm
+
+from pnp.losses.mappo import PopArtMAPPOLoss
+from pnp.training.checkpoint import (
+    adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, rng_state, save_checkpoint,
+    seed_everything, set_rng_state,
+)
+from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
+from pnp.training.config import migrate
+from pnp.training.keys import (
+    ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, ROLL_IN, SCALE, VALUE, VALUE_TARGET,
+)
+from pnp.training.models import fold_constant_inputs, make_models
+from pnp.training.plots import plot_training
+from pnp.training.ppo import ppo_update
+from pnp.training.tasks import make_env, schedule_of
+
+# Keys a resumed run takes from the command line; everything else comes from the checkpoint.
+# env.nthread too: MuJoCo steps each world on its own, so the thread count does not change
+# the numbers, and a run may move to a machine with fewer cores.
+RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress", "env.nthread")
+
+
+def make_loss(loss_cfg: DictConfig, models) -> PopArtMAPPOLoss:
+    loss = PopArtMAPPOLoss(models.actor, models.critic, models.popart, clip_epsilon=float(loss_cfg.clip_epsilon),
+                           entropy_coeff=float(loss_cfg.entropy_coeff), critic_coeff=float(loss_cfg.critic_coeff),
+                           loss_critic_type=str(loss_cfg.loss_critic_type))
+    loss.set_keys(reward=REWARD, action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE,
+                  value_target=VALUE_TARGET, done="done", terminated="terminated", loc=LOC, scale=SCALE)
+    loss.make_value_estimator(gamma=float(loss_cfg.gamma), lmbda=float(loss_cfg.lmbda))
+    return loss
+
+
+def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
+    """The configuration to run: ``cfg`` itself, or with ``resume`` set, the checkpoint's
+    (migrated to the schema) with only :data:`RESUME_OVERRIDES` taken from ``cfg``."""
+    if cfg.resume in (None, False) or str(cfg.resume).lower() in ("false", "none", ""):
+        return cfg, None
+    path = resolve_checkpoint(cfg.resume, cfg.runs_root)
+    ckpt = load_checkpoint(path)
+    saved = migrate(ckpt["cfg"])
+    for k in RESUME_OVERRIDES:
+        OmegaConf.update(saved, k, OmegaConf.select(cfg, k), merge=False)
+    saved.out_dir, saved.resume = str(path.parent), str(path)
+    return saved, ckpt
+
+
+def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None) -> Logger:
+    name = cfg.logger.exp_name or f"{cfg.env.backend}_{cfg.env.num_robots}r_{cfg.curriculum.schedule}_s{cfg.seed}"
+    if cfg.logger.backend == "csv":
+        return CSVLogger(name, log_dir=str(out_dir))
+    if cfg.logger.backend == "wandb":
+        # config= at init: offline runs drop config updates made after init.
+        return WandbLogger(name, offline=bool(cfg.logger.offline), save_dir=str(out_dir), project=cfg.logger.project,
+                           id=wandb_id, config=OmegaConf.to_container(cfg, resolve=True))
+    raise ValueError(f"logger.backend must be 'wandb' or 'csv', got {cfg.logger.backend!r}")
+
+
+class StopOnSignal:
+    """SIGTERM/SIGINT finish the current iteration, checkpoint and stop (a second one kills)."""
+
+    def __init__(self):
+        self.received = False
+        self._old = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                self._old[sig] = signal.signal(sig, self._handle)
+
+    def _handle(self, sig, frame):
+        if self.received:
+            self.restore()
+            signal.raise_signal(sig)
+        self.received = True
+
+    def restore(self):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
+
+
+def truncate_metrics(path: Path, iteration: int) -> None:
+    """Drop lines logged after the checkpoint (a run killed between checkpoints)."""
+    if path.is_file():
+        rows = [r for r in path.read_text().splitlines() if r and json.loads(r)["iteration"] <= iteration]
+        path.write_text("".join(r + "\n" for r in rows))
+
+
+class Trainer:
+    """One training run (or its resumption) in ``cfg.out_dir``."""
+
+    def __init__(self, cfg: DictConfig):
+        cfg, ckpt = resume_config(cfg)
+        if cfg.out_dir is None:
+            raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
+        self.cfg, self.out_dir = cfg, Path(cfg.out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
+        seed_everything(int(cfg.seed))
+        self.env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
+        self.models = make_models(cfg.model, cfg.loss, self.env)
+        self.loss = make_loss(cfg.loss, self.models)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
+        self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
+        share = float(cfg.collect.roll_in_share)
+        self.roll_in = MeanRollIn(self.env.base_env.num_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
+        if ckpt is not None:
+            self._restore(ckpt)
+        else:
+            self._start()
+        self.wandb_id = ckpt.get("wandb_id") if ckpt else None
+        self.logger = make_logger(cfg, self.out_dir, self.wandb_id)
+        if cfg.logger.backend == "wandb":
+            self.wandb_id = self.logger.experiment.id
+
+    def _restore(self, ckpt: dict) -> None:
+        m = self.models
+        m.actor.load_state_dict(ckpt["actor"])
+        m.critic.load_state_dict(ckpt["critic"])
+        self.optim.load_state_dict(ckpt["optim"])
+        self.env.transform.load_state_dict(ckpt["curriculum"])
+        self.env.base_env.set_state(ckpt["env"])
+        self.carried = ckpt["carried"]
+        self.counters = dict(ckpt["counters"])
+        set_rng_state(ckpt["rng"])
+        if self.roll_in is not None and "roll_in" in ckpt:
+            self.roll_in.length.copy_(ckpt["roll_in"])
+        truncate_metrics(self.metrics_path, self.counters["iteration"])
+
+    def _start(self) -> None:
+        cfg, m = self.cfg, self.models
+        truncate_metrics(self.metrics_path, 0)  # a reused folder starts a fresh log
+        if cfg.warm_start:
+            init = load_checkpoint(resolve_checkpoint(cfg.warm_start, cfg.runs_root))
+            load_module(m.actor, init["actor"])
+            widened = load_module(m.critic, init["critic"])  # a single-robot critic into the dual task
+            if widened:
+                print(f"warm start: widened {widened} with zero weights on the neighbour's inputs")
+            # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
+            # (entropy -19) policy to KL 74 in its first iteration (measured).
+            load_optimiser(self.optim, init["optim"])
+            if m.obs_norm is not None and cfg.warm_start_fold_constant:
+                print(f"warm start: folded constant observation entries "
+                      f"{fold_constant_inputs(m.obs_norm, [m.actor_net, m.critic_net])}")
+            if cfg.warm_start_curriculum:  # rho_j as they were: no reward-scale shock
+                base = self.env.base_env
+                self.env.transform.load_state_dict(adapt_curriculum(init["curriculum"], base.num_worlds,
+                                                                    base.num_robots))
+        self.carried = self.env.reset()
+        if cfg.collect.desync_episodes:
+            self.carried = desync_episodes(self.carried, cfg.env.max_episode_steps)
+        if m.obs_norm is not None and not cfg.warm_start:
+            m.obs_norm.update(self.carried[OBS])  # first statistics from the initial layouts
+
+    def checkpoint(self) -> None:
+        m = self.models
+        save_checkpoint(self.ckpt_path, {
+            "cfg": OmegaConf.to_container(self.cfg, resolve=True), "counters": dict(self.counters),
+            "actor": m.actor.state_dict(), "critic": m.critic.state_dict(), "optim": self.optim.state_dict(),
+            "curriculum": self.env.transform.state_dict(), "env": self.env.base_env.get_state(),
+            "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
+            **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
+        })
+
+    def iteration(self, steps: int) -> dict:
+        """Collect, update, log one iteration; returns its metrics row."""
+        batch, self.carried = collect(self.env, self.models.actor, self.carried, steps, self.roll_in)
+        losses = ppo_update(batch, self.loss, self.optim, self.cfg)
+        if self.models.obs_norm is not None:
+            self.models.obs_norm.update(batch[OBS])
+        self.counters["iteration"] += 1
+        self.counters["frames"] += batch.numel()
+        schedule = schedule_of(self.env)
+        rho = schedule.rho_by_term() if hasattr(schedule, "rho_by_term") else {}
+        extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
+        return {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
+
+    def run(self) -> dict:
+        """Train to ``total_iterations`` (or the wall-time limit, or a signal); returns the
+        run folder, checkpoint path and last metrics."""
+        cfg = self.cfg
+        steps = max(1, int(cfg.collect.frames_per_batch) // self.env.base_env.num_worlds)
+        total, every_s = int(cfg.total_iterations), 60.0 * float(cfg.checkpoint_every_min)
+        max_wall = math.inf if cfg.max_wall_hours is None else 3600.0 * float(cfg.max_wall_hours)
+        wall0, t0 = self.counters["wall_s"], time.monotonic()
+        last_ckpt, row = t0, {}
+        bar = tqdm(total=total, initial=self.counters["iteration"], disable=not cfg.progress, desc="train")
+        stop_signal = StopOnSignal()
+        try:
+            while self.counters["iteration"] < total:
+                row = self.iteration(steps)
+                self.counters["wall_s"] = row["wall_s"] = wall0 + time.monotonic() - t0
+                with self.metrics_path.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                self.logger.log_metrics({k: v for k, v in row.items() if math.isfinite(v)},
+                                        step=self.counters["iteration"])
+                bar.update(1)
+                bar.set_postfix(success=f"{row['success_rate']:.2f}", stage=f"{row['mean_end_stage']:.2f}")
+                stop = self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall or stop_signal.received
+                if stop or time.monotonic() - last_ckpt >= every_s:
+                    self.checkpoint()
+                    last_ckpt = time.monotonic()
+                if stop:
+                    break
+            if not self.ckpt_path.is_file():  # total already reached at start
+                self.checkpoint()
+        finally:
+            stop_signal.restore()
+        bar.close()
+        plot_training(self.metrics_path, self.out_dir)
+        if cfg.logger.backend == "wandb":
+            self.logger.experiment.finish()
+        self.env.close()
+        return {"out_dir": str(self.out_dir), "checkpoint": str(self.ckpt_path),
+                "stopped_by_signal": stop_signal.received, **row}
+
+
+def train(cfg: DictConfig) -> dict:
+    """Run (or resume) a training; see :meth:`Trainer.run`."""
+    return Trainer(cfg).run()

@@ -1,0 +1,106 @@
+"""The configuration schema: experiments compose, unknown keys are refused, old checkpoints
+migrate, kinematic-only options are refused on MuJoCo."""
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from pnp.box import DUAL_ROBOT_BOXES
+from pnp.terms import CONDITIONS
+from pnp.training.config import migrate
+from pnp.training.rollout import load_policy
+from pnp.training.tasks import kinematic_options, make_env, stage_graph
+from tests.training._tiny import ROOT, TINY, compose_cfg
+
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "recipes" / "config" / "experiment").glob("*.yaml"))
+QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/train_single/checkpoint_kinematic.pt",
+                      "results/train_dual/dual_mj2/checkpoint.pt"]
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_composes_and_builds_its_env(name):
+    cfg = compose_cfg("train", [f"experiment={name}", "env.num_worlds=2"])
+    assert cfg.env.task in ("pnp", "ee_tracking")
+    kinematic_options(cfg.env)  # kinematic options only where the backend is kinematic
+    if cfg.warm_start is not None:
+        assert (ROOT / cfg.warm_start).is_file(), cfg.warm_start
+    if cfg.env.backend == "kinematic":
+        make_env(cfg.env, cfg.curriculum, 0).close()
+
+
+def test_quoted_experiments_have_their_files():
+    quoted = {"single_pnp_mujoco", "single_pnp_kinematic", "dual_pnp_mujoco", "ee_tracking_ablation"}
+    assert quoted <= set(EXPERIMENTS)
+
+
+def test_the_dual_experiment_matches_its_checkpoint():
+    """experiment=dual_pnp_mujoco is the configuration results/train_dual/dual_mj2 trained with."""
+    saved = migrate(torch.load(ROOT / QUOTED_CHECKPOINTS[2], weights_only=False, map_location="cpu")["cfg"])
+    cfg = compose_cfg("train", ["experiment=dual_pnp_mujoco"])
+    for group in ("env", "curriculum", "model", "loss", "optim", "collect"):
+        mine, theirs = OmegaConf.to_container(cfg[group]), OmegaConf.to_container(saved[group])
+        assert mine == theirs, group
+
+
+def test_unknown_keys_and_bad_types_are_refused():
+    with pytest.raises(ConfigCompositionException, match="lone_holder_pinned"):
+        compose_cfg("train", ["env.lone_holder_pinned=true"])
+    with pytest.raises(ConfigCompositionException, match="num_worlds"):
+        compose_cfg("train", ["env.num_worlds=many"])
+
+
+def test_kinematic_options_are_refused_on_mujoco():
+    cfg = compose_cfg("train", ["backend=kinematic", "env.kinematic.grasp_holds=true"])
+    assert kinematic_options(cfg.env) == {"grasp_holds": True}
+    cfg.env.backend = "mujoco"
+    with pytest.raises(ValueError, match=r"\['grasp_holds'\] apply to the kinematic backend only"):
+        kinematic_options(cfg.env)
+
+
+def test_migrate_maps_old_keys_and_refuses_retired_ones_that_did_something():
+    old = {"env": {"backend": "kinematic", "box_blocks_base": True, "lone_holder_pinned": False},
+           "loss": {"reach_coeff": 0.0}}
+    cfg = migrate(old)
+    assert cfg.env.kinematic.box_blocks_base and not cfg.env.kinematic.grasp_holds
+    assert cfg.env.terminate_on_success and cfg.curriculum.episode_stage == "final"  # the code defaults of then
+    with pytest.raises(ValueError, match="loss.reach_coeff=10.0"):
+        migrate({"loss": {"reach_coeff": 10.0}})
+
+
+@pytest.mark.parametrize("path", QUOTED_CHECKPOINTS)
+def test_quoted_checkpoints_load(path):
+    pol = load_policy(ROOT / path, 2, seed=0, backend="kinematic")
+    td = pol.actor(pol.env.reset())
+    assert td["agents", "action"].shape == (2, pol.cfg.env.num_robots, 8)
+    pol.env.close()
+
+
+def test_fixed_weights_override_weights_the_named_term_and_rejects_unknown_names():
+    cfg = compose_cfg("train", [*TINY, "+curriculum.fixed_weights.action_rate=-2.0"])
+    assert make_env(cfg.env, cfg.curriculum, 0).transform[-1].fixed_weights["action_rate"] == -2.0
+    bad = compose_cfg("train", [*TINY, "+curriculum.fixed_weights.ee_reach=-1"])
+    with pytest.raises(ValueError, match="'ee_reach'"):
+        make_env(bad.env, bad.curriculum, 0)
+
+
+def test_env_boxes_picks_the_assets():
+    cfg = compose_cfg("train", [*TINY, "env.boxes=dual"])
+    assert make_env(cfg.env, cfg.curriculum, 0).base_env.box_assets == DUAL_ROBOT_BOXES
+    bad = compose_cfg("train", [*TINY, "env.boxes=huge"])
+    with pytest.raises(ValueError, match="'huge'"):
+        make_env(bad.env, bad.curriculum, 0)
+
+
+def test_backward_edges_override_replaces_the_tasks_edges_and_names_bad_stages():
+    default = stage_graph(compose_cfg("train", TINY).curriculum)
+    edges = "curriculum.backward_edges=[[gripper_ready,idle],[object_grabbed,idle],[released,object_placed]]"
+    graph = stage_graph(compose_cfg("train", [*TINY, edges]).curriculum)
+    placed, on_goal = graph.stages.index("object_placed"), graph.stages.index("object_on_goal")
+    assert (placed, on_goal) in default.backward_edges and (placed, on_goal) not in graph.backward_edges
+    stage, cond = torch.tensor([placed]), torch.zeros(1, len(CONDITIONS), dtype=torch.bool)
+    assert default.next_stage(stage, cond).item() == on_goal  # "placed" lost: back ...
+    assert graph.next_stage(stage, cond).item() == placed  # ... or not, without the edge
+    with pytest.raises(ValueError, match="'lifted'"):
+        stage_graph(compose_cfg("train", [*TINY, "curriculum.backward_edges=[[lifted,idle]]"]).curriculum)

@@ -1,0 +1,104 @@
+"""The rollout API: trial bookkeeping, failure causes, sampled action groups, evaluate.py."""
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from pnp.scripted import ScriptedPnP
+from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.training.keys import ACTION
+from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
+from pnp.training.tasks import make_env
+from tests.training._tiny import ROOT, compose_cfg, tiny_train
+
+sys.path.insert(0, str(ROOT / "recipes"))
+import evaluate as evaluate_recipe  # noqa: E402
+
+
+def test_evaluate_recipe_writes_the_table_and_its_provenance(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=2")
+    result = evaluate_recipe.evaluate(compose_cfg("evaluate", [
+        f"checkpoint={tmp_path / 'run'}", "trials=6", "env.num_worlds=4", "env.max_episode_steps=15",
+        f"out={tmp_path / 'eval.json'}", "progress=false",
+    ]))
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    for key in ("backend", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
+                "command", "commit", "seed", "machine", "wall_s", "env_steps", "train_wall_s", "warm_started_from"):
+        assert key in saved, key
+    assert saved["backend"] == "kinematic" and saved["trials"] == 6 == result["trials"]
+    assert saved["start_range_m"] == [0.6, 5.0] and saved["max_episode_s"] == 1.5  # paper's layouts by default
+    assert sum(saved["failure_causes"].values()) == round(saved["trials"] * (1 - saved["success_rate"]))
+    assert (tmp_path / "eval.md").read_text().startswith("| Method | Success rate (%) | Completion time (s) |")
+
+
+def test_scripted_policy_trials_add_up():
+    """The scripted policy succeeds on the kinematic backend: trials, successes and times add up."""
+    cfg = compose_cfg("train", ["backend=kinematic", "env.num_worlds=4", "env.terminate_on_success=true"])
+    env = make_env(cfg.env, cfg.curriculum, seed=5)
+    script = ScriptedPnP(4, 1)
+
+    def policy(td):
+        script.reset(td["step_count"].view(-1) == 0)
+        return script(td)
+
+    records = run_trials(env, policy, trials=6)
+    res = summarise(records)
+    assert res["trials"] == 6 and res["success_rate"] == 1.0
+    assert 1.0 < res["completion_time_mean_s"] < 45.0 and res["end_stage_counts"]["S6"] == 6
+    ends = [(r["end_step"], r["world"]) for r in records]
+    assert ends == sorted(ends) and max(sum(r["world"] == w for r in records) for w in range(4)) <= 2
+
+
+def _cause(success=False, fell=False, terminated=False, grabbed=False, box_goal=2.0, lifted=True):
+    """The cause given to a one-world episode that ended with these flags."""
+    cond = torch.zeros(1, 1, len(CONDITIONS), dtype=torch.bool)
+    cond[..., CONDITIONS.index("object_grabbed")] = grabbed
+    terms = torch.zeros(1, 1, len(REWARD_TERMS))
+    terms[..., REWARD_TERMS.index("fall")] = float(fell)
+    obj, goal = torch.zeros(1, 1, 30), torch.zeros(1, 1, 3)
+    obj[..., 0] = box_goal
+    agents = TensorDict({"stage_conditions": cond, "reward_terms": terms, "object": obj, "goal": goal},
+                        batch_size=(1, 1))
+    flag = lambda v: torch.full((1, 1), v)  # noqa: E731
+    nxt = TensorDict({"agents": agents, "success": flag(success), "terminated": flag(terminated or fell),
+                      "diverged": flag(False)}, batch_size=(1,))
+    return classify_failures(nxt, torch.tensor([0]), torch.tensor([lifted]))[0]
+
+
+@pytest.mark.parametrize("kwargs, cause", [
+    ({"success": True}, None),
+    ({"fell": True}, "fall"),
+    ({}, "dropped_box"),
+    ({"box_goal": 0.2}, "timeout"),  # set down inside the goal, not released
+    ({"grabbed": True}, "timeout"),  # still held at 45 s
+    ({"lifted": False}, "timeout"),  # never lifted
+])
+def test_failure_causes(kwargs, cause):
+    assert _cause(**kwargs) == cause
+
+
+def test_sample_draws_only_the_named_action_groups(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    pol = load_policy(tmp_path / "run" / "checkpoint.pt", 4, seed=0)
+    td = pol.env.reset()
+    mean = _act(pol.actor, td.clone(), ())[ACTION]
+    mixed = _act(pol.actor, td.clone(), ("ee",))[ACTION]
+    ee = ACTION_GROUPS["ee"]
+    torch.testing.assert_close(mixed[..., :3], mean[..., :3])
+    torch.testing.assert_close(mixed[..., 7:], mean[..., 7:])
+    assert not torch.allclose(mixed[..., ee], mean[..., ee])  # drawn, not the mean
+    with pytest.raises(ValueError, match="'wrist'"):
+        run_trials(pol.env, pol.actor, trials=1, sample=["wrist"])
+    with pytest.raises(ValueError, match="'gravity'"):
+        load_policy(tmp_path / "run" / "checkpoint.pt", 4, seed=0, gravity=1.0)
+
+
+def test_a_corrupt_checkpoint_is_named(tmp_path):
+    bad = tmp_path / "checkpoint.pt"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="checkpoint.pt is unreadable"):
+        load_policy(bad, 4, seed=0)

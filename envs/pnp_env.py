@@ -300,6 +300,11 @@ class PnPEnv(RobotEnvBase):
         # States saved before handle claims lack them: every robot unclaimed.
         self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
 
+    def ee_positions(self) -> torch.Tensor:
+        """World-frame EE positions [N, R, 3] of the current state (for analysis)."""
+        closed = self._last_action[..., 7] > 0.5
+        return self.backend.state(self._goal, self._init_goal_dist, closed.float()).ee_pos.clone()
+
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""
         self.backend.push(world, np.asarray(force, dtype=np.float64))

@@ -20,7 +20,8 @@ test-all: $(STAMP)
 	WANDB_MODE=offline MUJOCO_GL=egl $(PY) -m pytest -q -m ""
 
 # Main job: single robot, MuJoCo, dynamic curriculum (~11 s per iteration on 2 cores);
-# re-running it resumes runs/main from its last checkpoint, then evaluates 500 trials.
+# re-running it resumes runs/main from its last checkpoint, then evaluates 500 trials into
+# runs/main (results/ holds only quoted figures).
 RUN ?= runs/main
 train: $(STAMP)
 	if [ -f $(RUN)/checkpoint.pt ]; then \
@@ -28,7 +29,7 @@ train: $(STAMP)
 	else \
 	  WANDB_MODE=offline $(PY) recipes/train.py out_dir=$(RUN) $(ARGS); \
 	fi
-	$(PY) recipes/evaluate.py checkpoint=$(RUN) out=results/eval_single_pnp.json
+	$(PY) recipes/evaluate.py checkpoint=$(RUN) out=$(RUN)/eval_single_pnp.json
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py

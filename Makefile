@@ -19,16 +19,13 @@ test: $(STAMP)
 test-all: $(STAMP)
 	WANDB_MODE=offline MUJOCO_GL=egl $(PY) -m pytest -q -m ""
 
-# Main job: single robot, MuJoCo, dynamic curriculum (~11 s per iteration on 2 cores);
-# re-running it resumes runs/main from its last checkpoint, then evaluates 500 trials into
-# runs/main (results/ holds only quoted figures).
+# Main job: the single-robot pipeline from random weights (recipes/config/experiment/
+# single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then 500 trials of its last
+# phase into runs/main (results/ holds only quoted figures). Ctrl-C checkpoints; re-running
+# resumes where it stopped.
 RUN ?= runs/main
 train: $(STAMP)
-	if [ -f $(RUN)/checkpoint.pt ]; then \
-	  WANDB_MODE=offline $(PY) recipes/train.py resume=$(RUN) $(ARGS); \
-	else \
-	  WANDB_MODE=offline $(PY) recipes/train.py out_dir=$(RUN) $(ARGS); \
-	fi
+	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline out_dir=$(RUN) $(ARGS)
 	$(PY) recipes/evaluate.py checkpoint=$(RUN) out=$(RUN)/eval_single_pnp.json
 
 benchmark: $(STAMP)

@@ -2,6 +2,7 @@
 
     python recipes/train.py                                   # one robot, MuJoCo, the paper's setting
     python recipes/train.py experiment=dual_pnp_mujoco        # a quoted result's configuration
+    python recipes/train.py experiment=single_pnp_pipeline out_dir=runs/main   # phases; rerun to resume
     python recipes/train.py backend=kinematic env.num_worlds=256 env.max_episode_steps=150
     python recipes/train.py curriculum.schedule=liu_max logger.backend=csv
     python recipes/train.py resume=true                       # newest runs/**/checkpoint.pt
@@ -20,6 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pnp.training.config import register
+from pnp.training.pipeline import run_pipeline
 from pnp.training.trainer import train
 
 register()
@@ -29,7 +31,11 @@ register()
 def main(cfg: DictConfig) -> None:
     if cfg.out_dir is None:
         cfg.out_dir = HydraConfig.get().runtime.output_dir
-    train(cfg)
+    if cfg.pipeline:  # an experiment of phases (e.g. experiment=single_pnp_pipeline): resumes by itself
+        if not run_pipeline(cfg)["finished"]:
+            raise SystemExit(f"stopped before the pipeline's end; the same command resumes in {cfg.out_dir}")
+    else:
+        train(cfg)
 
 
 if __name__ == "__main__":

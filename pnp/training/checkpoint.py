@@ -8,6 +8,7 @@ what it predicted alone.
 """
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import random
@@ -56,13 +57,18 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def resolve_checkpoint(spec, runs_root: str | Path) -> Path:
-    """``true``/``latest``: the newest ``checkpoint.pt`` under ``runs_root``; a run folder; or a file."""
+    """``true``/``latest``: the newest ``checkpoint.pt`` under ``runs_root``; a run folder (a
+    pipeline's: its last finished phase's); or a file."""
     if spec is True or str(spec).lower() in ("true", "latest"):
         found = sorted(Path(runs_root).glob("**/checkpoint.pt"), key=lambda p: p.stat().st_mtime)
         if not found:
             raise FileNotFoundError(f"no checkpoint.pt under {Path(runs_root).resolve()}")
         return found[-1]
     path = Path(str(spec))
+    if path.is_dir() and not (path / "checkpoint.pt").is_file() and (path / "pipeline.json").is_file():
+        phases = json.loads((path / "pipeline.json").read_text())["phases"]  # a pipeline: its last phase's
+        if phases:
+            return Path(phases[-1]["checkpoint"])
     if path.is_dir():
         path = path / "checkpoint.pt"
     if not path.is_file():

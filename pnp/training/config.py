@@ -122,6 +122,27 @@ class LoggerConfig:
 
 
 @dataclass
+class ExitRule:
+    """A phase ends early once ``metric`` (a metrics.jsonl column), averaged over the last
+    ``window`` iterations weighted by their episode counts, reaches ``min``."""
+
+    metric: str = "success_rate"
+    min: float = 0.9
+    window: int = 50
+
+
+@dataclass
+class PhaseConfig:
+    """One phase of a pipeline: overrides of this configuration (dotted keys), an exit
+    rule measured in training, and a frame budget that ends it regardless."""
+
+    name: str = "phase"
+    overrides: Dict[str, Any] = field(default_factory=dict)
+    exit: Optional[ExitRule] = None
+    max_frames: int = 10_000_000
+
+
+@dataclass
 class TrainConfig:
     seed: int = 0
     total_iterations: int = 3000
@@ -142,6 +163,9 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    # Non-empty: run these phases back to back in out_dir, each warm-started from the last
+    # (pnp.training.pipeline); re-running the same command resumes where it stopped.
+    pipeline: List[PhaseConfig] = field(default_factory=list)
 
 
 # Keys that old checkpoints hold and the schema dropped: each with the only value that

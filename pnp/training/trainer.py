@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -193,16 +194,20 @@ class Trainer:
         extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
         return {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
 
-    def run(self) -> dict:
-        """Train to ``total_iterations`` (or the wall-time limit, or a signal); returns the
-        run folder, checkpoint path and last metrics."""
+    def run(self, stop_when: Callable[[dict], bool] | None = None, bar: tqdm | None = None) -> dict:
+        """Train to ``total_iterations`` (or the wall-time limit, a signal, or until
+        ``stop_when(row)`` holds after an iteration); returns the run folder, checkpoint
+        path, how it stopped and the last metrics. ``bar``: a progress bar to advance
+        (a pipeline's, over all its phases) instead of this run's own."""
         cfg = self.cfg
         steps = max(1, int(cfg.collect.frames_per_batch) // self.env.base_env.num_worlds)
         total, every_s = int(cfg.total_iterations), 60.0 * float(cfg.checkpoint_every_min)
         max_wall = math.inf if cfg.max_wall_hours is None else 3600.0 * float(cfg.max_wall_hours)
         wall0, t0 = self.counters["wall_s"], time.monotonic()
-        last_ckpt, row = t0, {}
-        bar = tqdm(total=total, initial=self.counters["iteration"], disable=not cfg.progress, desc="train")
+        last_ckpt, row, by_rule = t0, {}, False
+        own_bar = bar is None
+        if own_bar:
+            bar = tqdm(total=total, initial=self.counters["iteration"], disable=not cfg.progress, desc="train")
         stop_signal = StopOnSignal()
         try:
             while self.counters["iteration"] < total:
@@ -214,7 +219,9 @@ class Trainer:
                                         step=self.counters["iteration"])
                 bar.update(1)
                 bar.set_postfix(success=f"{row['success_rate']:.2f}", stage=f"{row['mean_end_stage']:.2f}")
-                stop = self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall or stop_signal.received
+                by_rule = stop_when is not None and stop_when(row)
+                stop = (self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall
+                        or stop_signal.received or by_rule)
                 if stop or time.monotonic() - last_ckpt >= every_s:
                     self.checkpoint()
                     last_ckpt = time.monotonic()
@@ -224,13 +231,14 @@ class Trainer:
                 self.checkpoint()
         finally:
             stop_signal.restore()
-        bar.close()
+        if own_bar:
+            bar.close()
         plot_training(self.metrics_path, self.out_dir)
         if cfg.logger.backend == "wandb":
             self.logger.experiment.finish()
         self.env.close()
         return {"out_dir": str(self.out_dir), "checkpoint": str(self.ckpt_path),
-                "stopped_by_signal": stop_signal.received, **row}
+                "stopped_by_signal": stop_signal.received, "stopped_by_rule": by_rule, **row}
 
 
 def train(cfg: DictConfig) -> dict:

@@ -1,0 +1,137 @@
+"""A training pipeline: phases run back to back in one run folder, each warm-started from
+the last, each ended by a rule measured in training or by its frame budget.
+
+Layout of ``out_dir``: ``pipeline.json`` (the phases finished so far: name, overrides,
+iterations, frames, wall time, how each ended) and one folder per phase,
+``<index>_<name>/``, a normal run folder (checkpoint, metrics, plots). Re-running the same
+command resumes: finished phases are skipped, the current one resumes bit for bit from
+its checkpoint, and the next starts from the last one's final checkpoint.
+
+What used to be done by hand between runs happens here: the weights, Adam state and
+observation statistics carry over; the curriculum state (rho per world) carries over and
+is resized to the new world count; a change of backend folds the inputs that never moved
+on the old one (``warm_start_fold_constant``).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from pnp.training.checkpoint import load_checkpoint
+from pnp.training.trainer import Trainer
+
+STATE = "pipeline.json"
+
+
+class ExitCheck:
+    """``rule`` (an ``ExitRule``) over the metric rows of a phase, fed one row at a time."""
+
+    def __init__(self, rule: DictConfig | None, rows: list[dict]):
+        self.rule, self.rows = rule, list(rows)
+
+    def __call__(self, row: dict) -> bool:
+        self.rows.append(row)
+        return self.met()
+
+    def met(self) -> bool:
+        if self.rule is None or len(self.rows) < int(self.rule.window):
+            return False
+        if self.rule.metric not in self.rows[-1]:
+            raise KeyError(f"exit rule metric {self.rule.metric!r} is not logged; metrics are {sorted(self.rows[-1])}")
+        recent = [r for r in self.rows[-int(self.rule.window):]
+                  if r.get("episodes", 0) > 0 and math.isfinite(r.get(self.rule.metric, math.nan))]
+        n = sum(r["episodes"] for r in recent)
+        return n > 0 and sum(r[self.rule.metric] * r["episodes"] for r in recent) / n >= float(self.rule.min)
+
+
+def phase_dir(out_dir: Path, index: int, name: str) -> Path:
+    return out_dir / f"{index}_{name}"
+
+
+def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig:
+    """The run configuration of phase ``index``: ``cfg`` with the phase's overrides, its
+    folder, its frame budget as iterations, and a warm start from ``source``."""
+    phase = cfg.pipeline[index]
+    pcfg = copy.deepcopy(cfg)  # keeps the schema: overrides are type-checked
+    pcfg.pipeline = []
+    for key, value in phase.overrides.items():
+        if OmegaConf.select(pcfg, key, default="<missing>") == "<missing>":
+            raise ValueError(f"pipeline phase {phase.name!r} overrides unknown key {key!r}")
+        OmegaConf.update(pcfg, key, value, merge=False)
+    pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, phase.name))
+    pcfg.total_iterations = math.ceil(int(phase.max_frames) / int(pcfg.collect.frames_per_batch))
+    pcfg.resume = False
+    if (Path(pcfg.out_dir) / "checkpoint.pt").is_file():
+        pcfg.resume = pcfg.out_dir
+    elif source is not None:
+        pcfg.warm_start, pcfg.warm_start_curriculum = str(source), True
+        pcfg.warm_start_fold_constant = _phase_value(cfg, index - 1, "env.backend") != pcfg.env.backend
+    return pcfg
+
+
+def _phase_value(cfg: DictConfig, index: int, key: str):
+    """``key`` as phase ``index`` sets it (or the pipeline's configuration)."""
+    overrides = cfg.pipeline[index].overrides
+    return overrides[key] if key in overrides else OmegaConf.select(cfg, key)
+
+
+def load_state(out_dir: Path) -> list[dict]:
+    path = out_dir / STATE
+    return json.loads(path.read_text())["phases"] if path.is_file() else []
+
+
+def _read_rows(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
+
+
+def run_pipeline(cfg: DictConfig) -> dict:
+    """Run (or resume) ``cfg.pipeline`` in ``cfg.out_dir``; returns the phase records and
+    whether the pipeline finished (``False`` when a signal stopped it)."""
+    if not cfg.pipeline:
+        raise ValueError("run_pipeline needs a non-empty pipeline (an experiment that declares one)")
+    if cfg.out_dir is None:
+        raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = [p.name for p in cfg.pipeline]
+    done = load_state(out_dir)
+    if [d["name"] for d in done] != names[: len(done)]:
+        raise ValueError(f"{out_dir / STATE} records phases {[d['name'] for d in done]}, this pipeline is {names}: "
+                         "a different pipeline; use another out_dir")
+    budgets = [math.ceil(int(p.max_frames) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
+               for i, p in enumerate(cfg.pipeline)]
+    bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
+    bar.update(sum(d["iterations"] for d in done))
+    for index in range(len(done), len(names)):
+        source = Path(done[-1]["checkpoint"]) if done else None
+        pcfg = phase_config(cfg, index, source)
+        ckpt_path, rows = Path(pcfg.out_dir) / "checkpoint.pt", []
+        if pcfg.resume:  # the rows up to its checkpoint: later ones are redone
+            counters = load_checkpoint(ckpt_path)["counters"]
+            rows = [r for r in _read_rows(ckpt_path.parent / "metrics.jsonl") if r["iteration"] <= counters["iteration"]]
+        check = ExitCheck(cfg.pipeline[index].exit, rows)
+        bar.set_description(f"pipeline {index + 1}/{len(names)} {names[index]}")
+        if check.met():  # it stopped by its rule after its last checkpoint, before the record
+            by_rule = True
+            bar.update(counters["iteration"])
+        else:
+            trainer = Trainer(pcfg)
+            bar.update(trainer.counters["iteration"])
+            result = trainer.run(stop_when=check, bar=bar)
+            counters, by_rule, ckpt_path = trainer.counters, result["stopped_by_rule"], trainer.ckpt_path
+            if result["stopped_by_signal"] or (not by_rule and counters["iteration"] < int(pcfg.total_iterations)):
+                bar.close()  # a signal or the wall-time limit: the same command resumes here
+                return {"out_dir": str(out_dir), "phases": done, "finished": False}
+        done.append({
+            "name": names[index], "overrides": OmegaConf.to_container(cfg.pipeline[index].overrides),
+            "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
+            "wall_s": float(counters["wall_s"]), "exit": "rule" if by_rule else "budget", "checkpoint": str(ckpt_path),
+        })
+        (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
+    bar.close()
+    return {"out_dir": str(out_dir), "phases": done, "finished": True}

@@ -1,0 +1,76 @@
+"""Pipelines: phases back to back with warm starts, exit rules and budgets, resumable."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from pnp.training.checkpoint import load_checkpoint
+from pnp.training.pipeline import ExitCheck, run_pipeline
+from tests.training._tiny import TINY, compose_cfg
+
+PHASES = [
+    "+pipeline=[{name: near, max_frames: 80, overrides: {env.start_range: [0.6, 1.5]}},"
+    "{name: far, max_frames: 120, overrides: {env.num_worlds: 8, collect.frames_per_batch: 40}}]",
+]
+
+
+def _cfg(out_dir, *extra):
+    return compose_cfg("train", [*TINY, f"out_dir={out_dir}", *PHASES, *extra])
+
+
+def test_phases_run_back_to_back_with_warm_starts(tmp_path):
+    out = run_pipeline(_cfg(tmp_path / "run"))
+    assert out["finished"] and [p["name"] for p in out["phases"]] == ["near", "far"]
+    near, far = out["phases"]
+    assert (near["iterations"], near["frames"], near["exit"]) == (2, 80, "budget")
+    assert (far["iterations"], far["frames"], far["exit"]) == (3, 120, "budget")
+    assert json.loads((tmp_path / "run" / "pipeline.json").read_text())["phases"] == out["phases"]
+    first, second = (load_checkpoint(tmp_path / "run" / d / "checkpoint.pt") for d in ("0_near", "1_far"))
+    assert second["cfg"]["warm_start"].endswith("0_near/checkpoint.pt") and second["cfg"]["warm_start_curriculum"]
+    assert second["cfg"]["env"]["num_worlds"] == 8 and first["cfg"]["env"]["start_range"] == [0.6, 1.5]
+    rho1, rho2 = first["curriculum"]["transforms.2.rho"], second["curriculum"]["transforms.2.rho"]
+    assert rho2.shape[0] == 8 and rho1.shape[0] == 4  # the curriculum carried over, resized
+    # a rerun finds the pipeline finished and trains nothing
+    assert run_pipeline(_cfg(tmp_path / "run"))["phases"] == out["phases"]
+
+
+def test_a_pipeline_resumed_mid_phase_ends_as_one_run_straight_through(tmp_path):
+    straight = run_pipeline(_cfg(tmp_path / "a"))
+    # the same pipeline stopped by the wall-time limit after 1 iteration of its first phase, then resumed
+    cut = run_pipeline(_cfg(tmp_path / "b", "max_wall_hours=0.0"))
+    assert not cut["finished"] and cut["phases"] == []  # stopped in its first phase
+    resumed = run_pipeline(_cfg(tmp_path / "b"))
+    assert resumed["finished"]
+    for d in ("0_near", "1_far"):
+        a, b = (load_checkpoint(tmp_path / r / d / "checkpoint.pt") for r in ("a", "b"))
+        for k in a["actor"]:
+            assert torch.equal(a["actor"][k], b["actor"][k]), (d, k)
+    assert [p["frames"] for p in straight["phases"]] == [p["frames"] for p in resumed["phases"]]
+
+
+def test_exit_rule_ends_a_phase_and_is_recorded(tmp_path):
+    rule = "+pipeline=[{name: near, max_frames: 80, exit: {metric: frames, min: 40, window: 1}}]"  # met at once
+    out = run_pipeline(compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", rule]))
+    assert out["phases"][0]["exit"] == "rule" and out["phases"][0]["iterations"] == 1
+
+
+def test_exit_check_weights_by_episodes_and_names_unknown_metrics():
+    rule = OmegaConf.create({"metric": "success_rate", "min": 0.5, "window": 2})
+    check = ExitCheck(rule, [{"episodes": 1, "success_rate": 1.0}])
+    assert not check({"episodes": 3, "success_rate": 0.2})  # (1 + 0.6) / 4 = 0.4
+    assert check({"episodes": 3, "success_rate": 0.8})  # (0.6 + 2.4) / 6 = 0.5
+    with pytest.raises(KeyError, match="'succes'"):
+        ExitCheck(OmegaConf.create({**rule, "metric": "succes"}), [{"episodes": 1}] * 2).met()
+
+
+def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
+    bad = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'x'}", "+pipeline=[{name: a, overrides: {env.gravity: 1}}]"])
+    with pytest.raises(ValueError, match="'env.gravity'"):
+        run_pipeline(bad)
+    run_pipeline(_cfg(tmp_path / "run"))
+    other = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "+pipeline=[{name: other, max_frames: 40}]"])
+    with pytest.raises(ValueError, match="a different pipeline"):
+        run_pipeline(other)

@@ -21,8 +21,9 @@ import hydra
 from omegaconf import DictConfig
 
 from pnp.task import EPISODE_S, HL_DT
-from pnp.training.checkpoint import resolve_checkpoint
+from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
+from pnp.training.pipeline import load_state
 from pnp.training.provenance import provenance
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 
@@ -64,6 +65,11 @@ def evaluate(cfg: DictConfig) -> dict:
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none",
         "wall_s": time.monotonic() - t0, **provenance(),
     }
+    phases = load_state(Path(str(cfg.checkpoint)))  # a pipeline folder: every phase's cost
+    if phases:
+        first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
+        result.update(from_scratch=first.get("warm_start") is None, phases=phases,
+                      train_wall_s=sum(p["wall_s"] for p in phases), env_frames=sum(p["frames"] for p in phases))
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env.backend}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")

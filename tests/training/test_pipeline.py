@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import pytest
 import torch
@@ -9,7 +10,10 @@ from omegaconf import OmegaConf
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.pipeline import ExitCheck, run_pipeline
-from tests.training._tiny import TINY, compose_cfg
+from tests.training._tiny import ROOT, TINY, compose_cfg
+
+sys.path.insert(0, str(ROOT / "recipes"))
+import evaluate as evaluate_recipe  # noqa: E402
 
 PHASES = [
     "+pipeline=[{name: near, max_frames: 80, overrides: {env.start_range: [0.6, 1.5]}},"
@@ -74,3 +78,12 @@ def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
     other = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "+pipeline=[{name: other, max_frames: 40}]"])
     with pytest.raises(ValueError, match="a different pipeline"):
         run_pipeline(other)
+
+
+def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):
+    out = run_pipeline(_cfg(tmp_path / "run"))
+    result = evaluate_recipe.evaluate(compose_cfg("evaluate", [
+        f"checkpoint={tmp_path / 'run'}", "trials=4", "env.num_worlds=4", "env.max_episode_steps=5",
+        f"out={tmp_path / 'eval.json'}", "progress=false"]))
+    assert result["checkpoint"].endswith("1_far/checkpoint.pt") and result["from_scratch"]
+    assert result["phases"] == out["phases"] and result["env_frames"] == 200

@@ -8,6 +8,7 @@ from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
 import grasp_losses  # noqa: E402
+import profile_iteration  # noqa: E402
 
 
 def test_grasp_losses_counts_and_writes_provenance(tmp_path):
@@ -19,3 +20,12 @@ def test_grasp_losses_counts_and_writes_provenance(tmp_path):
     assert saved["worlds"] == 3 and saved["env"] == {"handle_claim": True}
     assert min(saved["grasps_ended_opened"], saved["grasps_lost_closed"], saved["grasp_steps_kept"]) >= 0
     assert 0.0 <= saved["world_lifted"] <= 1.0 and saved["commit"] and saved["machine"]
+
+
+def test_profile_iteration_splits_the_time(tmp_path):
+    out = profile_iteration.main(["backend=kinematic", "env.num_worlds=4", "collect.frames_per_batch=16",
+                                  "collect.minibatch_size=8", "model.actor_cells=[16]", "model.critic_cells=[16]",
+                                  "iterations=1", f"out={tmp_path / 'p.json'}"])
+    assert out["frames_per_iteration"] == 16 and out["seconds_per_iteration"] > 0
+    assert abs(out["policy_share"] + out["env_step_share"] + out["ppo_update_share"] - 1) < 1e-6
+    assert json.loads((tmp_path / "p.json").read_text())["backend"] == "kinematic"

@@ -1,0 +1,81 @@
+"""Where a training iteration's time goes: policy forward, env step (physics + task terms +
+TorchRL transforms) and the PPO update, for any training configuration.
+
+    python recipes/analyze/profile_iteration.py experiment=single_pnp_pipeline iterations=3 out=runs/profile.json
+    python recipes/analyze/profile_iteration.py backend=mujoco env.num_worlds=1024 collect.frames_per_batch=16384
+
+Arguments are those of recipes/train.py (hydra overrides) plus ``iterations`` (timed after
+one untimed warm-up iteration) and ``out``. Torch runs on one thread and MuJoCo's pool on
+``env.nthread``, as in training.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict.nn import InteractionType, set_interaction_type
+
+from pnp.training.config import register
+from pnp.training.ppo import ppo_update
+from pnp.training.provenance import provenance
+from pnp.training.models import make_models
+from pnp.training.tasks import make_env
+from pnp.training.trainer import make_loss
+
+CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "config")
+
+
+def profile(cfg, iterations: int) -> dict:
+    torch.manual_seed(int(cfg.seed))
+    env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
+    models = make_models(cfg.model, cfg.loss, env)
+    loss = make_loss(cfg.loss, models)
+    optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
+    steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
+    carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
+    for it in range(iterations + 1):
+        t = {k: 0.0 for k in times}
+        out = []
+        with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                carried = models.actor(carried)
+                t1 = time.perf_counter()
+                td, carried = env.step_and_maybe_reset(carried)
+                t["policy_s"] += t1 - t0
+                t["env_step_s"] += time.perf_counter() - t1
+                out.append(td)
+        t0 = time.perf_counter()
+        ppo_update(torch.stack(out, -1), loss, optim, cfg)
+        t["ppo_update_s"] = time.perf_counter() - t0
+        if it:  # the first iteration warms up allocations and thread pools
+            times = {k: times[k] + t[k] / iterations for k in times}
+    env.close()
+    total = sum(times.values())
+    return {"backend": cfg.env.backend, "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
+            "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
+            "seconds_per_iteration": total, **times, **{k.replace("_s", "_share"): v / total for k, v in times.items()},
+            "frames_per_s": steps * env.base_env.num_worlds / total}
+
+
+def main(argv: list[str]) -> dict:
+    opts = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] in ("iterations", "out")}
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=[a for a in argv if a.split("=", 1)[0] not in opts])
+    torch.set_num_threads(1)
+    result = {**profile(cfg, int(opts.get("iterations", 3))), **provenance()}
+    out = Path(opts.get("out", "runs/profile_iteration.json"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result, indent=1))
+    return result
+
+
+register()
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

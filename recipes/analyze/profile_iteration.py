@@ -58,7 +58,7 @@ def profile(cfg, iterations: int) -> dict:
     total = sum(times.values())
     return {"backend": cfg.env.backend, "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
             "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
-            "seconds_per_iteration": total, **times, **{k.replace("_s", "_share"): v / total for k, v in times.items()},
+            "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
             "frames_per_s": steps * env.base_env.num_worlds / total}
 
 

@@ -217,8 +217,8 @@ class Trainer:
                     f.write(json.dumps(row) + "\n")
                 self.logger.log_metrics({k: v for k, v in row.items() if math.isfinite(v)},
                                         step=self.counters["iteration"])
+                bar.set_postfix(success=f"{row['success_rate']:.2f}", stage=f"{row['mean_end_stage']:.2f}", refresh=False)
                 bar.update(1)
-                bar.set_postfix(success=f"{row['success_rate']:.2f}", stage=f"{row['mean_end_stage']:.2f}")
                 by_rule = stop_when is not None and stop_when(row)
                 stop = (self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall
                         or stop_signal.received or by_rule)

@@ -13,6 +13,7 @@ from tensordict import TensorDict
 from pnp.stage_graph import pnp_default_reward_config
 from pnp.training.collect import episode_metrics
 from pnp.training.config import register
+from pnp.training.pipeline import phase_config
 
 ROOT = Path(__file__).resolve().parents[2]
 register()
@@ -67,3 +68,16 @@ def test_metric_is_logged(sweep):
     flags = {k: torch.zeros(n, t, 1, dtype=torch.bool) for k in ("done", "success")}
     batch = TensorDict({"next": TensorDict({**flags, "agents": agents}, batch_size=(n, t))}, batch_size=(n, t))
     assert sweep["metric"]["name"] in episode_metrics(batch)
+
+
+def test_swept_values_reach_the_phase_the_sweep_runs(sweep, tmp_path):
+    command = [c for c in sweep["command"] if not c.startswith("${")]
+    overrides = [f"{key}={spec.get('values', [spec.get('value', spec.get('max'))])[-1]}"
+                 for key, spec in sweep["parameters"].items()]
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
+        cfg = compose("train", overrides=[*command, *overrides, f"out_dir={tmp_path}"])
+    assert len(cfg.pipeline) == 1 and cfg.pipeline[0].exit is None  # a fixed budget, no early exit
+    phase = phase_config(cfg, 0, None)
+    for override in overrides:
+        key, value = override.split("=", 1)
+        assert str(OmegaConf.select(phase, key)) == str(yaml.safe_load(value)), key

@@ -9,8 +9,8 @@ its checkpoint, and the next starts from the last one's final checkpoint.
 
 What used to be done by hand between runs happens here: the weights, Adam state and
 observation statistics carry over; the curriculum state (rho per world) carries over and
-is resized to the new world count; a change of backend folds the inputs that never moved
-on the old one (``warm_start_fold_constant``).
+is resized to the new world count (and from one robot to two); a change of backend or
+robot count folds the inputs that never moved before (``warm_start_fold_constant``).
 """
 from __future__ import annotations
 
@@ -70,7 +70,10 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
         pcfg.resume = pcfg.out_dir
     elif source is not None:
         pcfg.warm_start, pcfg.warm_start_curriculum = str(source), True
-        pcfg.warm_start_fold_constant = _phase_value(cfg, index - 1, "env.backend") != pcfg.env.backend
+        # Inputs that never moved before move now: a new backend's (wrist roll, box tilt) or,
+        # from one robot to two, the neighbour block's.
+        pcfg.warm_start_fold_constant = any(_phase_value(cfg, index - 1, k) != OmegaConf.select(pcfg, k)
+                                            for k in ("env.backend", "env.num_robots"))
     return pcfg
 
 

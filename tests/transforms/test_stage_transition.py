@@ -35,7 +35,7 @@ def test_stage_climbs_to_reach_one_step_at_a_time():
     s = stages(r)
     expected = torch.minimum(torch.arange(1, 9)[None, :, None], reach[:, None, :])
     assert torch.equal(s, expected)
-    one_hot = r["next", *ONE_HOT]
+    one_hot = r[("next", *ONE_HOT)]
     assert torch.equal(one_hot.argmax(-1), s) and torch.equal(one_hot.sum(-1), torch.ones_like(s).float())
 
 

@@ -62,7 +62,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
         "warm_started_from": trained.warm_start, "trained_backend": pol.ckpt["cfg"]["env"]["backend"],
         "folded_inputs": pol.folded, "sampled_actions": list(sample),
-        "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none",
+        "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "wall_s": time.monotonic() - t0, **provenance(),
     }
     phases = load_state(Path(str(cfg.checkpoint)))  # a pipeline folder: every phase's cost

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
+from pnp.training.plots import plot_pipeline
 from pnp.training.trainer import Trainer
 
 STATE = "pipeline.json"
@@ -136,5 +137,6 @@ def run_pipeline(cfg: DictConfig) -> dict:
             "wall_s": float(counters["wall_s"]), "exit": "rule" if by_rule else "budget", "checkpoint": str(ckpt_path),
         })
         (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
+        plot_pipeline(out_dir, done)
     bar.close()
     return {"out_dir": str(out_dir), "phases": done, "finished": True}

@@ -28,8 +28,10 @@ def _series(rows: list[dict], key: str) -> np.ndarray:
     return np.array([r.get(key, math.nan) for r in rows], dtype=float)
 
 
-def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -> list[Path]:
-    """Write the PNGs next to the metrics (or into ``out_dir``); returns their paths."""
+def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None,
+                  phases: list[tuple[float, str]] = ()) -> list[Path]:
+    """Write the PNGs next to the metrics (or into ``out_dir``); returns their paths.
+    ``phases``: (first iteration, name) of each pipeline phase, marked on every plot."""
     rows = load_metrics(metrics_path) if Path(metrics_path).is_file() else []
     out_dir = Path(out_dir) if out_dir is not None else Path(metrics_path).parent
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -50,7 +52,7 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ax.legend(fontsize=8)
     ax.set(xlabel="iteration", ylabel="mean end-of-episode stage", ylim=(0, max(len(shares), 2) - 0.8))
     ax.grid(alpha=0.3)
-    written.append(_save(fig, out_dir / "mean_end_stage.png"))
+    written.append(_save(fig, out_dir / "mean_end_stage.png", phases))
 
     if shares:
         fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -60,7 +62,7 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ylabel = "share of episodes by highest stage" if peak else "share of episodes ending in stage"
         ax.set(xlabel="iteration", ylabel=ylabel, ylim=(0, 1))
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
-        written.append(_save(fig, out_dir / "stage_shares.png"))
+        written.append(_save(fig, out_dir / "stage_shares.png", phases))
 
     succ, eps = _series(rows, "success_rate"), _series(rows, "episodes")
     ok = np.isfinite(succ) & (np.nan_to_num(eps) > 0)
@@ -78,7 +80,7 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ax.set(xlabel="iteration", ylabel="training success rate (stochastic policy)", ylim=(0, 1))
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
-        written.append(_save(fig, out_dir / "success_rate.png"))
+        written.append(_save(fig, out_dir / "success_rate.png", phases))
 
     rho = sorted({k for r in rows for k in r if k.startswith("rho/")})
     if rho:
@@ -88,11 +90,29 @@ def plot_training(metrics_path: str | Path, out_dir: str | Path | None = None) -
         ax.set(xlabel="iteration", ylabel="mean rho_j (over worlds and robots)", yscale="log")
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=7)
         ax.grid(alpha=0.3, which="both")
-        written.append(_save(fig, out_dir / "rho.png"))
+        written.append(_save(fig, out_dir / "rho.png", phases))
     return written
 
 
-def _save(fig, path: Path) -> Path:
+def plot_pipeline(out_dir: str | Path, phases: list[dict]) -> list[Path]:
+    """The training plots over a whole pipeline: every phase's metrics on one iteration
+    axis (``pipeline_metrics.jsonl``), phase starts marked."""
+    out_dir, rows, marks, offset = Path(out_dir), [], [], 0
+    for i, phase in enumerate(phases):
+        marks.append((offset + 0.5, phase["name"]))
+        for r in load_metrics(Path(phase["checkpoint"]).parent / "metrics.jsonl"):
+            rows.append({**r, "iteration": offset + r["iteration"], "phase": i})
+        offset += phase["iterations"]
+    path = out_dir / "pipeline_metrics.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return plot_training(path, out_dir, marks)
+
+
+def _save(fig, path: Path, phases: list[tuple[float, str]] = ()) -> Path:
+    for ax in fig.axes:
+        for x, name in phases:
+            ax.axvline(x, color="k", lw=0.8, alpha=0.5)
+            ax.text(x, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", rotation=90)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -32,6 +32,10 @@ def test_phases_run_back_to_back_with_warm_starts(tmp_path):
     assert (near["iterations"], near["frames"], near["exit"]) == (2, 80, "budget")
     assert (far["iterations"], far["frames"], far["exit"]) == (3, 120, "budget")
     assert json.loads((tmp_path / "run" / "pipeline.json").read_text())["phases"] == out["phases"]
+    rows = [json.loads(line) for line in (tmp_path / "run" / "pipeline_metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4, 5] and [r["phase"] for r in rows] == [0, 0, 1, 1, 1]
+    for png in ("mean_end_stage.png", "stage_shares.png", "rho.png"):
+        assert (tmp_path / "run" / png).stat().st_size > 0
     first, second = (load_checkpoint(tmp_path / "run" / d / "checkpoint.pt") for d in ("0_near", "1_far"))
     assert second["cfg"]["warm_start"].endswith("0_near/checkpoint.pt") and second["cfg"]["warm_start_curriculum"]
     assert second["cfg"]["env"]["num_worlds"] == 8 and first["cfg"]["env"]["start_range"] == [0.6, 1.5]

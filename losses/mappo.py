@@ -98,15 +98,25 @@ class PopArtMAPPOLoss(MAPPOLoss):
             self.popart.update(tensordict.get(self.tensor_keys.value_target))
 
     @torch.no_grad()
-    def behaviour_kl(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """Mean KL(behaviour || current) over the batch."""
-        current = self.actor_network.module[0](tensordict.select(*self.actor_network.module[0].in_keys).copy())
+    def behaviour_kl(self, tensordict: TensorDictBase, current: D.Distribution | None = None) -> torch.Tensor:
+        """Mean KL(behaviour || current) over the batch; ``current``: the current policy's
+        distribution on it, when already built (else one actor forward)."""
         make_dist = self.actor_network.module[-1].get_dist
+        if current is None:
+            params = self.actor_network.module[0](tensordict.select(*self.actor_network.module[0].in_keys).copy())
+            current = make_dist(params)
         old = make_dist(tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale))
-        return policy_kl(old, make_dist(current)).mean()
+        return policy_kl(old, current).mean()
+
+    def _log_weight(self, tensordict: TensorDictBase, adv_shape: torch.Size):
+        out = super()._log_weight(tensordict, adv_shape)
+        self.__dict__["_current_dist"] = out[1]  # the policy on this batch, for the KL in forward
+        return out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        kl = self.behaviour_kl(tensordict)  # first: the actor call below writes new loc/scale
+        # The actor's forward writes new loc/scale into a copy: the behaviour's stay here.
+        behaviour = tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale)
         out = super().forward(tensordict)
-        out.set("kl", kl)
+        current = self.__dict__.pop("_current_dist", None)
+        out.set("kl", self.behaviour_kl(behaviour, current))
         return out

@@ -90,6 +90,16 @@ def desync_episodes(carried: TensorDictBase, max_steps: int | None) -> TensorDic
     return carried
 
 
+def windowed_mean(rows: list[dict], metric: str, window: int) -> float | None:
+    """``metric`` over the last ``window`` rows, weighted by their episode counts (``None``
+    before ``window`` rows or when no episode ended in them)."""
+    if len(rows) < window:
+        return None
+    recent = [r for r in rows[-window:] if r.get("episodes", 0) > 0 and math.isfinite(r.get(metric, math.nan))]
+    n = sum(r["episodes"] for r in recent)
+    return sum(r[metric] * r["episodes"] for r in recent) / n if n else None
+
+
 def _shares(stages: torch.Tensor, n_stages: int, prefix: str) -> dict[str, float]:
     hist = torch.bincount(stages, minlength=n_stages).float()
     return {f"{prefix}/S{i}": float(h / hist.sum()) if stages.numel() else math.nan for i, h in enumerate(hist)}

@@ -24,16 +24,30 @@ class KinematicOptions:
 
 
 @dataclass
+class StartCurriculumConfig:
+    """Ours: the start distances widen with measured success. The upper end starts at
+    ``env.start_range[1]`` and grows by ``step_m`` (up to ``max_m``) each time the training
+    success over the last ``window`` iterations reaches ``min_success``."""
+
+    enabled: bool = False
+    min_success: float = 0.8
+    window: int = 50
+    step_m: float = 0.5
+    max_m: float = 5.0
+
+
+@dataclass
 class EnvConfig:
     task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot)
     backend: str = "mujoco"  # mujoco | kinematic
     num_worlds: int = 64
     num_robots: int = 1
-    kinematic: Optional[KinematicOptions] = None  # set by backend=kinematic
+    kinematic: KinematicOptions = field(default_factory=KinematicOptions)  # all off on MuJoCo
     boxes: Optional[str] = None  # null: the robot count's boxes (paper); single | dual: those assets
     nthread: Optional[int] = 2
     max_episode_steps: Optional[int] = None  # null: the paper's 45 s (450 steps)
     start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
+    start_curriculum: StartCurriculumConfig = field(default_factory=StartCurriculumConfig)
     # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.
     terminate_on_success: bool = False
     handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)

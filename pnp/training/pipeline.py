@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
+from pnp.training.collect import windowed_mean
 from pnp.training.plots import plot_pipeline
 from pnp.training.trainer import Trainer
 
@@ -30,24 +31,25 @@ STATE = "pipeline.json"
 
 
 class ExitCheck:
-    """``rule`` (an ``ExitRule``) over the metric rows of a phase, fed one row at a time."""
+    """``rule`` (an ``ExitRule``) over the metric rows of a phase, fed one row at a time.
+    With a start curriculum, the rule counts only once the starts are at their widest."""
 
-    def __init__(self, rule: DictConfig | None, rows: list[dict]):
-        self.rule, self.rows = rule, list(rows)
+    def __init__(self, rule: DictConfig | None, rows: list[dict], widest: float | None = None):
+        self.rule, self.rows, self.widest = rule, list(rows), widest
 
     def __call__(self, row: dict) -> bool:
         self.rows.append(row)
         return self.met()
 
     def met(self) -> bool:
-        if self.rule is None or len(self.rows) < int(self.rule.window):
+        if self.rule is None or not self.rows:
             return False
         if self.rule.metric not in self.rows[-1]:
             raise KeyError(f"exit rule metric {self.rule.metric!r} is not logged; metrics are {sorted(self.rows[-1])}")
-        recent = [r for r in self.rows[-int(self.rule.window):]
-                  if r.get("episodes", 0) > 0 and math.isfinite(r.get(self.rule.metric, math.nan))]
-        n = sum(r["episodes"] for r in recent)
-        return n > 0 and sum(r[self.rule.metric] * r["episodes"] for r in recent) / n >= float(self.rule.min)
+        if self.widest is not None and self.rows[-1].get("start_range_high", self.widest) < self.widest:
+            return False
+        value = windowed_mean(self.rows, self.rule.metric, int(self.rule.window))
+        return value is not None and value >= float(self.rule.min)
 
 
 def phase_dir(out_dir: Path, index: int, name: str) -> Path:
@@ -63,7 +65,8 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
     for key, value in phase.overrides.items():
         if OmegaConf.select(pcfg, key, default="<missing>") == "<missing>":
             raise ValueError(f"pipeline phase {phase.name!r} overrides unknown key {key!r}")
-        OmegaConf.update(pcfg, key, value, merge=False)
+        # A mapping (e.g. env.start_curriculum) merges into its node; anything else replaces.
+        OmegaConf.update(pcfg, key, value, merge=isinstance(value, (dict, DictConfig)))
     pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, phase.name))
     pcfg.total_iterations = math.ceil(int(phase.max_frames) / int(pcfg.collect.frames_per_batch))
     pcfg.resume = False
@@ -118,7 +121,8 @@ def run_pipeline(cfg: DictConfig) -> dict:
         if pcfg.resume:  # the rows up to its checkpoint: later ones are redone
             counters = load_checkpoint(ckpt_path)["counters"]
             rows = [r for r in _read_rows(ckpt_path.parent / "metrics.jsonl") if r["iteration"] <= counters["iteration"]]
-        check = ExitCheck(cfg.pipeline[index].exit, rows)
+        widest = pcfg.env.start_curriculum.max_m if pcfg.env.start_curriculum.enabled else None
+        check = ExitCheck(cfg.pipeline[index].exit, rows, widest)
         bar.set_description(f"pipeline {index + 1}/{len(names)} {names[index]}")
         if check.met():  # it stopped by its rule after its last checkpoint, before the record
             by_rule = True

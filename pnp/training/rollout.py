@@ -78,7 +78,8 @@ def load_policy(checkpoint: str | Path, num_worlds: int, seed: int, **env_overri
         if value is not None:
             OmegaConf.update(env, key, value, merge=False)
     if env.backend != "kinematic":
-        env.kinematic = None  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
+        for key in env.kinematic:  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
+            env.kinematic[key] = False
     seed_everything(seed)
     tenv = make_env(env, cfg.curriculum, seed)
     models = make_models(cfg.model, cfg.loss, tenv)

@@ -53,7 +53,7 @@ def kinematic_options(env_cfg: DictConfig) -> dict | None:
     if env_cfg.backend != "kinematic":
         if opts:
             raise ValueError(f"env.kinematic options {sorted(opts)} apply to the kinematic backend only; this run "
-                             f"uses env.backend={env_cfg.backend!r} (drop them, or set env.kinematic=null)")
+                             f"uses env.backend={env_cfg.backend!r} (switch them off: env.kinematic.<option>=false)")
         return None
     return opts or None
 

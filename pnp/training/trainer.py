@@ -33,6 +33,7 @@ from pnp.training.keys import (
 from pnp.training.models import fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
 from pnp.training.ppo import ppo_update
+from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.tasks import make_env, schedule_of
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
@@ -121,6 +122,8 @@ class Trainer:
         self.loss = make_loss(cfg.loss, self.models)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
+        sc = cfg.env.start_curriculum
+        self.start_curriculum = StartCurriculum(self.env.base_env, sc) if sc.enabled else None
         share = float(cfg.collect.roll_in_share)
         self.roll_in = MeanRollIn(self.env.base_env.num_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
         if ckpt is not None:
@@ -144,6 +147,8 @@ class Trainer:
         set_rng_state(ckpt["rng"])
         if self.roll_in is not None and "roll_in" in ckpt:
             self.roll_in.length.copy_(ckpt["roll_in"])
+        if self.start_curriculum is not None and "start_curriculum" in ckpt:
+            self.start_curriculum.load_state_dict(ckpt["start_curriculum"])
         truncate_metrics(self.metrics_path, self.counters["iteration"])
 
     def _start(self) -> None:
@@ -179,6 +184,7 @@ class Trainer:
             "curriculum": self.env.transform.state_dict(), "env": self.env.base_env.get_state(),
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
             **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
+            **({"start_curriculum": self.start_curriculum.state_dict()} if self.start_curriculum is not None else {}),
         })
 
     def iteration(self, steps: int) -> dict:
@@ -192,7 +198,11 @@ class Trainer:
         schedule = schedule_of(self.env)
         rho = schedule.rho_by_term() if hasattr(schedule, "rho_by_term") else {}
         extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
-        return {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
+        row = {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
+        if self.start_curriculum is not None:  # the range these episodes started in, then widen
+            row["start_range_high"] = self.start_curriculum.high
+            self.start_curriculum.update(row)
+        return row
 
     def run(self, stop_when: Callable[[dict], bool] | None = None, bar: tqdm | None = None) -> dict:
         """Train to ``total_iterations`` (or the wall-time limit, a signal, or until

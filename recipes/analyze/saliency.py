@@ -10,7 +10,7 @@ gripper, its probability (the thresholded command has no gradient). Each world r
 first episode on MuJoCo; a step's saliency is |d||a||/dx| per input, as shares of its sum
 over the observation (the stage one-hot the teacher also sees is left out). Writes
 ``<out>.json`` (shares per block and field by stage, and the inputs' own share of the
-dimensions as the uniform baseline), ``<out>_stages.png`` (per stage, the blocks' shares)
+dimensions as the uniform baseline), ``<out>.png`` (per stage, the blocks' shares)
 and ``<out>_episode.png`` (world 0: fields x time, each robot's stage along the time axis).
 """
 from __future__ import annotations
@@ -38,7 +38,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 DEFAULTS = {"checkpoint": None, "out": "runs/saliency", "episodes": 100, "seed": 12345, "nthread": 2,
-            "max_episode_steps": None}  # null: the paper's 45 s
+            "max_episode_steps": None,  # null: the paper's 45 s
+    "replot": False}  # true: redraw the PNGs from an existing <out>.json
 
 
 def field_slices() -> dict[str, slice]:
@@ -171,17 +172,18 @@ def saliency(checkpoint: str, episodes: int, seed: int, nthread: int, max_episod
 def plot(result: dict, out: Path) -> list[Path]:
     stages = list(result["by_stage"])
     blocks = list(OBS_BLOCKS)
-    fig, ax = plt.subplots(figsize=(7, 3.8))
+    fig, ax = plt.subplots(figsize=(8, 4))
     bottom = np.zeros(len(stages))
     for b in blocks:
         v = np.array([result["by_stage"][s]["blocks"][b] for s in stages])
         ax.bar(stages, v, bottom=bottom, label=f"{b} ({100 * sum(result['uniform_share'][k] for k in result['uniform_share'] if k.startswith(b + '/')):.0f} % of inputs)")
         bottom += v
     ax.set(ylabel="share of saliency", ylim=(0, 1), title=f"{result['num_robots']} robot(s): saliency by stage")
-    ax.set_xticks(range(len(stages)), [f"{s}\n{STAGES[int(s[1:])]}" for s in stages], fontsize=7)
+    ax.set_xticks(range(len(stages)), [f"{s} {STAGES[int(s[1:])]}" for s in stages], fontsize=7, rotation=25,
+                  ha="right")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
     fig.tight_layout()
-    p1 = out.with_name(out.name + "_stages.png")
+    p1 = out.with_name(out.name + ".png")
     fig.savefig(p1, dpi=120)
     plt.close(fig)
 
@@ -209,9 +211,13 @@ def main(argv: list[str]) -> dict:
     cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
     if cfg.checkpoint is None:
         raise SystemExit(__doc__)
+    out = Path(cfg.out)
+    if cfg.replot:
+        result = json.loads(out.with_suffix(".json").read_text())
+        plot(result, out)
+        return result
     torch.set_num_threads(1)
     result = saliency(cfg.checkpoint, int(cfg.episodes), int(cfg.seed), int(cfg.nthread), cfg.max_episode_steps)
-    out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     result["plots"] = [str(p) for p in plot(result, out)]
     if result["num_robots"] == 2:

@@ -44,4 +44,4 @@ def test_saliency_smoke_on_a_tiny_dual_checkpoint(tmp_path):
     assert saved["num_robots"] == 2 and "claims" in saved and out["episodes"] == 2
     shares = saved["by_stage"]["S0"]["blocks"]
     assert abs(sum(shares.values()) - 1) < 1e-3
-    assert (tmp_path / "sal_stages.png").stat().st_size > 0 and (tmp_path / "sal_episode.png").stat().st_size > 0
+    assert (tmp_path / "sal.png").stat().st_size > 0 and (tmp_path / "sal_episode.png").stat().st_size > 0

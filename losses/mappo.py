@@ -119,4 +119,8 @@ class PopArtMAPPOLoss(MAPPOLoss):
         out = super().forward(tensordict)
         current = self.__dict__.pop("_current_dist", None)
         out.set("kl", self.behaviour_kl(behaviour, current))
+        return self._extend(out, tensordict, current)
+
+    def _extend(self, out: TensorDictBase, tensordict: TensorDictBase, current: D.Distribution) -> TensorDictBase:
+        """Hook for subclasses: more ``loss_*`` terms from the current policy's distribution."""
         return out

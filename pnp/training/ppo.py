@@ -10,8 +10,8 @@ from tensordict import TensorDictBase
 from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.training.keys import ROLL_IN
 
-LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "entropy", "explained_variance", "clip_fraction",
-          "kl_approx", "kl")
+LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "entropy", "explained_variance",
+          "clip_fraction", "kl_approx", "kl", "kl_teacher")
 
 
 def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
@@ -46,7 +46,7 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
         for idx in torch.randperm(frames).split(int(cfg.collect.minibatch_size)):
             out = loss(flat[idx])
             adapt_lr(optim, float(out["kl"]), cfg.optim)  # the lr of this very step
-            total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            total = sum(v for k, v in out.items() if k.startswith("loss_"))  # MAPPO's, and any a subclass adds
             optim.zero_grad(set_to_none=True)
             total.backward()
             sums["grad_norm"] += float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))

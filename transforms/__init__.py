@@ -8,9 +8,11 @@ in an env (alone, in a ``Compose``, in ``SerialEnv``/``ParallelEnv``, in a colle
 called directly on a tensordict holding t and ``"next"``; a replay buffer is refused
 (``RuntimeError``): their state is per env world, and sampled rows have no world, so
 compute stages and rewards in the env and store them.
+``ObservationNoise`` adds per-field Gaussian noise and held-value dropouts to observations.
 """
 from __future__ import annotations
 
+from ._noise import ObservationNoise
 from ._reward_scaling import (
     SCHEDULES,
     AdaptiveRewardScaling,
@@ -28,6 +30,7 @@ __all__ = [
     "FixedScales",
     "LiuMax",
     "LiuMin",
+    "ObservationNoise",
     "StageRewardSchedule",
     "StageTransition",
     "make_reward_schedule",

@@ -7,11 +7,9 @@ import torch
 
 from pnp.losses.distillation import DistillationPPOLoss
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.training.collect import collect
 from pnp.training.keys import ACTION, ADVANTAGE, LOC, LOG_PROB, REWARD, SCALE, VALUE, VALUE_TARGET
-from pnp.training.models import GRASP_ENTRY, make_models
-from pnp.training.tasks import make_env
-from tests.training._tiny import TINY, compose_cfg
+from pnp.training.models import GRASP_ENTRY
+from tests.losses._batch import tiny_models_and_batch
 
 TEACHER_LOC, TEACHER_SCALE = ("agents", "teacher_loc"), ("agents", "teacher_scale")
 SHIFT, SCALE_RATIO = 0.3, 1.5  # the teacher's loc = student's + SHIFT, its scale = student's x SCALE_RATIO
@@ -30,11 +28,7 @@ def _loss(cls, models, **kw):
 
 @pytest.fixture(scope="module")
 def setup():
-    torch.manual_seed(0)
-    cfg = compose_cfg("train", TINY)
-    env = make_env(cfg.env, cfg.curriculum, 0)
-    models = make_models(cfg.model, cfg.loss, env)
-    batch, _ = collect(env, models.actor, env.reset(), 5)
+    _, models, batch = tiny_models_and_batch()
     batch[TEACHER_LOC] = batch[LOC] + SHIFT
     batch[TEACHER_SCALE] = batch[SCALE] * SCALE_RATIO
     with torch.no_grad():

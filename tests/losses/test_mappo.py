@@ -7,23 +7,19 @@ from omegaconf import OmegaConf
 from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.losses.mappo import PopArtMAPPOLoss, policy_kl
-from pnp.training.collect import collect
 from pnp.training.keys import LOC, SCALE, VALUE_TARGET
 from pnp.training.models import PopArt, dist_from_params, make_models
 from pnp.training.ppo import adapt_lr
 from pnp.training.tasks import make_env
 from pnp.training.trainer import make_loss
+from tests.losses._batch import tiny_models_and_batch
 from tests.training._tiny import TINY, compose_cfg
 
 
 @pytest.fixture(scope="module")
 def setup():
-    torch.manual_seed(0)
-    cfg = compose_cfg("train", TINY)
-    env = make_env(cfg.env, cfg.curriculum, 0)
-    models = make_models(cfg.model, cfg.loss, env)
+    cfg, models, batch = tiny_models_and_batch()
     loss = make_loss(cfg.loss, models)
-    batch, _ = collect(env, models.actor, env.reset(), 5)
     with torch.no_grad():
         loss.value_estimator(batch)
     return cfg, models, loss, batch.reshape(-1)

@@ -107,7 +107,7 @@ class MujocoBackend(Backend):
         return torch.from_numpy(self.physics.qpos[:, self.idx.arm_qpos]).float()
 
     def step(self, action):
-        N, R = self.num_worlds, self.num_robots
+        N = self.num_worlds
         base_yaw = torch.from_numpy(self.physics.qpos[:, self.idx.base_qpos[:, 2]]).float()
         base, arm, fingers = self.executor.controls(action, base_yaw, self._arm_q(), self.nsub, self.model.opt.timestep)
         ctrl = torch.zeros(N, self.nsub, self.model.nu, dtype=torch.float64)

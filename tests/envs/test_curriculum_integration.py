@@ -1,5 +1,4 @@
 """The curriculum transforms on the MuJoCo PnP env, collected with a TorchRL Collector."""
-import torch
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs

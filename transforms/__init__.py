@@ -9,9 +9,11 @@ called directly on a tensordict holding t and ``"next"``; a replay buffer is ref
 (``RuntimeError``): their state is per env world, and sampled rows have no world, so
 compute stages and rewards in the env and store them.
 ``ObservationNoise`` adds per-field Gaussian noise and held-value dropouts to observations.
+``ColumnHistory`` appends the last few values of some observation columns, dropping others.
 """
 from __future__ import annotations
 
+from ._history import ColumnHistory
 from ._noise import ObservationNoise
 from ._reward_scaling import (
     SCHEDULES,
@@ -27,6 +29,7 @@ from ._stage import StageTransition
 __all__ = [
     "SCHEDULES",
     "AdaptiveRewardScaling",
+    "ColumnHistory",
     "FixedScales",
     "LiuMax",
     "LiuMin",

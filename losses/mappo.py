@@ -98,15 +98,10 @@ class PopArtMAPPOLoss(MAPPOLoss):
             self.popart.update(tensordict.get(self.tensor_keys.value_target))
 
     @torch.no_grad()
-    def behaviour_kl(self, tensordict: TensorDictBase, current: D.Distribution | None = None) -> torch.Tensor:
-        """Mean KL(behaviour || current) over the batch; ``current``: the current policy's
-        distribution on it, when already built (else one actor forward)."""
-        make_dist = self.actor_network.module[-1].get_dist
-        if current is None:
-            params = self.actor_network.module[0](tensordict.select(*self.actor_network.module[0].in_keys).copy())
-            current = make_dist(params)
-        old = make_dist(tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale))
-        return policy_kl(old, current).mean()
+    def behaviour_kl(self, tensordict: TensorDictBase, current: D.Distribution) -> torch.Tensor:
+        """Mean KL(behaviour || current) over the batch, ``current`` the policy's distribution on it."""
+        k = self.tensor_keys
+        return policy_kl(self.actor_network.module[-1].get_dist(tensordict.select(k.loc, k.scale)), current).mean()
 
     def _log_weight(self, tensordict: TensorDictBase, adv_shape: torch.Size):
         out = super()._log_weight(tensordict, adv_shape)
@@ -117,7 +112,7 @@ class PopArtMAPPOLoss(MAPPOLoss):
         # The actor's forward writes new loc/scale into a copy: the behaviour's stay here.
         behaviour = tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale)
         out = super().forward(tensordict)
-        current = self.__dict__.pop("_current_dist", None)
+        current = self.__dict__.pop("_current_dist")
         out.set("kl", self.behaviour_kl(behaviour, current))
         return self._extend(out, tensordict, current)
 

@@ -52,6 +52,22 @@ def _check_agent_shape(
     )
 
 
+class _LazyBuffers:
+    """Buffers sized at the first call (names in ``_lazy``, registered empty): a loaded
+    state dict gives them its shapes before the copy, on this module's device."""
+
+    _lazy: tuple[str, ...] = ()
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        fixed = [b for n, b in self.named_buffers(recurse=False) if n not in self._lazy]
+        device = fixed[0].device if fixed else None
+        for name in self._lazy:
+            saved = state_dict.get(prefix + name)
+            if saved is not None:
+                setattr(self, name, torch.empty_like(saved, device=device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
 class _EnvOnly:
     """Refuses replay buffers, whose sampled rows are not the env's worlds.
 

@@ -27,7 +27,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ._checks import _check_agent_shape, _check_exact, _check_names, _EnvOnly, _get
+from ._checks import _check_agent_shape, _check_exact, _check_names, _EnvOnly, _get, _LazyBuffers
 from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = [
@@ -256,7 +256,7 @@ class LiuMin(_LiuSchedule):
         super().__init__(bound=low, **cfg)
 
 
-class AdaptiveRewardScaling(StageRewardSchedule):
+class AdaptiveRewardScaling(_LazyBuffers, StageRewardSchedule):
     """The paper's adaptive reward scaling (Eq. 2), per world and per robot.
 
     At each reset of a slot whose episode ended (``episode_stage >= 0`` was seen) in
@@ -365,13 +365,6 @@ class AdaptiveRewardScaling(StageRewardSchedule):
         mean = self.rho.reshape(-1, self.rho.shape[-1]).mean(0)
         return {n: float(v) for n, v in zip(self.stage_term_names, mean)}
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # Lazily sized buffers take the saved shape before the copy.
-        for name in self._lazy:
-            saved = state_dict.get(prefix + name)
-            if saved is not None:
-                setattr(self, name, torch.empty_like(saved, device=self.stage_histogram.device))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 
 SCHEDULES: dict[str, type[StageRewardSchedule]] = {

@@ -52,3 +52,13 @@ class CountingObsEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         pass
+
+
+def steps(env, td, n: int):
+    """``n`` steps with zero actions from ``td``: the observations seen [n, N, A, D] and the last td."""
+    out = []
+    for _ in range(n):
+        td = td.set(("agents", "action"), torch.zeros(N, A, 1))
+        _, td = env.step_and_maybe_reset(td)
+        out.append(td[("agents", "observation")].clone())
+    return torch.stack(out), td

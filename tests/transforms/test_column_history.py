@@ -19,7 +19,7 @@ from torchrl.envs.utils import check_env_specs
 
 from pnp.transforms import ColumnHistory, ObservationNoise
 
-from ._counting_env import A, D, N, CountingObsEnv
+from ._counting_env import A, D, N, CountingObsEnv, steps
 
 COLS, L, DROP = (1, 3), 3, [(4, 6)]
 K, KEPT = COLS[1] - COLS[0], D - 2  # columns 0-3 kept
@@ -95,15 +95,6 @@ def test_partial_reset_refills_only_the_reset_worlds():
     # Other worlds: the reset output shows their history as it was after the step.
     assert torch.equal(out[1:, 2], r["next", OBS][1:, 1])
     assert torch.equal(history(out[1:, 3])[:, :, 1], history(out[1:, 2])[:, :, 0])
-
-
-def steps(env, td, n):
-    out = []
-    for _ in range(n):
-        td = td.set(("agents", "action"), torch.zeros(N, A, 1))
-        _, td = env.step_and_maybe_reset(td)
-        out.append(td[OBS].clone())
-    return torch.stack(out), td
 
 
 def test_state_dict_round_trip_mid_rollout():

@@ -17,7 +17,7 @@ from torchrl.envs.utils import check_env_specs
 
 from pnp.transforms import ObservationNoise
 
-from ._counting_env import A, D, N, CountingObsEnv
+from ._counting_env import A, D, N, CountingObsEnv, steps
 
 FIELDS = {"pos": ((1, 3), 0.5), "obj": (slice(3, 5), 0.1)}  # columns 0 and 5 stay clean
 OBS = ("agents", "observation")
@@ -87,15 +87,6 @@ def test_seeded_generator_is_reproducible():
     assert torch.equal(seen(a), seen(b))
     other = rollout(make_env(**{**cfg, "generator_seed": 8}), 20)
     assert not torch.equal(seen(a), seen(other))
-
-
-def steps(env, td, n):
-    out = []
-    for _ in range(n):
-        td = td.set(("agents", "action"), torch.zeros(N, A, 1))
-        _, td = env.step_and_maybe_reset(td)
-        out.append(td[OBS].clone())
-    return torch.stack(out), td
 
 
 def test_state_dict_round_trip_mid_rollout():

@@ -25,6 +25,7 @@ import json
 import math
 import string
 import sys
+import time
 from pathlib import Path
 from typing import NamedTuple
 
@@ -227,14 +228,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def main(argv: list[str]) -> dict:
-    args = parse_args(argv)
+    args, t0 = parse_args(argv), time.monotonic()
     rows, inputs = load_runs(args.metrics)
     prog = progression(rows, inputs, args.window, args.min_drop, args.recover)
     intervals = label_intervals(prog["regressions"], [inp["offset"] for inp in inputs[1:]], args.window)
     out = Path(args.out_prefix)
     out.parent.mkdir(parents=True, exist_ok=True)
     plot(prog, intervals, inputs, out.with_name(out.name + ".png"), args.window)
-    result = summary(prog, intervals, inputs, args)
+    # No randomness: the figure is a function of the metrics files (seed is their runs').
+    result = {**summary(prog, intervals, inputs, args), "seed": None, "wall_s": time.monotonic() - t0}
     out.with_name(out.name + ".json").write_text(json.dumps(result, indent=1) + "\n")
     for g in result["intervals"]:
         print(f"{g['label']}: iterations {g['start_iteration']:.0f}-{g['end_iteration']:.0f}, "

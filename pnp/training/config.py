@@ -88,6 +88,9 @@ class ModelConfig:
     # > 0: floor on the grasp entry's pre-tanh std, tanh_normal gripper only (the Bernoulli's
     # ignores its scale); the single-robot chain began with it (docs/train_single/LINEAGE.md).
     grasp_min_scale: float = 0.0
+    # > 0, Bernoulli gripper only: a soft floor on its closing probability, so that grasps are
+    # still tried where p would collapse to ~0 (models.GripperFloor).
+    grasp_min_prob: float = 0.0
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
     obs_norm: bool = True  # running observation normalisation (in the checkpoint)
 

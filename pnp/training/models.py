@@ -123,6 +123,29 @@ class ScaleBounds(nn.Module):
         return loc, scale if self.ceiling is None else torch.minimum(scale, self.ceiling)
 
 
+class GripperFloor(nn.Module):
+    """A soft floor under the Bernoulli gripper's logit, ``lo + softplus(logit - lo)`` with
+    ``lo = logit(min_prob)``: p never falls below ``min_prob``, can still go to 1, and the
+    gradient never vanishes.
+
+    Why: the gripper explores by its Bernoulli draw alone. From random weights the
+    ``grab_action`` term (1 - p while nothing is held) drove p to ~0 in S1 while the EE sat
+    within grasp range half of the time, so closing was never tried (docs/pipeline_single.md).
+    No ceiling: a held box is dropped by a single open draw.
+    """
+
+    def __init__(self, extractor: nn.Module, index: int, min_prob: float):
+        super().__init__()
+        self.extractor, self.index = extractor, index
+        self.lo = math.log(min_prob / (1.0 - min_prob))
+
+    def forward(self, x: torch.Tensor):
+        loc, scale = self.extractor(x)
+        loc = loc.clone()
+        loc[..., self.index] = self.lo + nn.functional.softplus(loc[..., self.index] - self.lo)
+        return loc, scale
+
+
 class PopArt(nn.Module):
     """Critic head: an affine map in normalised space, read out at the real return scale.
 
@@ -193,6 +216,11 @@ def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
             raise ValueError(f"model.max_scale={model_cfg.max_scale} is below model.min_scale={model_cfg.min_scale}")
     if (floor > 0).any() or ceiling is not None:
         head = ScaleBounds(head, floor, ceiling)
+    if model_cfg.grasp_min_prob > 0:
+        if model_cfg.grasp_dist != "bernoulli" or model_cfg.grasp_min_prob >= 0.5:
+            raise ValueError(f"model.grasp_min_prob={model_cfg.grasp_min_prob} needs 0 <= p < 0.5 and "
+                             f"model.grasp_dist='bernoulli' (got {model_cfg.grasp_dist!r})")
+        head = GripperFloor(head, GRASP_ENTRY, model_cfg.grasp_min_prob)
     return head
 
 

@@ -45,6 +45,19 @@ def test_bernoulli_gripper_actions_are_binary_and_deterministic_mode_thresholds(
     assert torch.equal(det, (logit > 0).float())
 
 
+def test_grasp_min_prob_floors_the_gripper_probability_only_from_below():
+    actor, env = _actor_env("model.grasp_min_prob=0.05")
+    head = actor.module[0].module.head
+    raw = torch.tensor([[-30.0, -3.0, 0.0, 3.0, 30.0]]).T.expand(-1, 2 * env.full_action_spec_unbatched[ACTION].shape[-1]).contiguous()
+    loc, _ = head(raw)
+    p = torch.sigmoid(loc[:, GRASP_ENTRY])
+    assert p.min() >= 0.05 and p[0] < 0.051  # a collapsed logit sits at the floor
+    assert p[-1] > 0.999 and torch.all(p[1:] > p[:-1])  # no ceiling, order kept
+    assert torch.equal(loc[:, :GRASP_ENTRY], raw[:, :GRASP_ENTRY])  # other entries untouched
+    with pytest.raises(ValueError, match="grasp_min_prob=0.05"):
+        _actor_env("model.grasp_min_prob=0.05", "model.grasp_dist=tanh_normal")
+
+
 def test_centralised_critic_gives_each_agent_its_own_value():
     torch.manual_seed(0)
     net = AgentNet(5, 1, 2, True, [16])

@@ -110,6 +110,10 @@ def run_pipeline(cfg: DictConfig) -> dict:
     if [d["name"] for d in done] != names[: len(done)]:
         raise ValueError(f"{out_dir / STATE} records phases {[d['name'] for d in done]}, this pipeline is {names}: "
                          "a different pipeline; use another out_dir")
+    for d, phase in zip(done, cfg.pipeline):
+        if d["overrides"] != OmegaConf.to_container(phase.overrides):
+            raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
+                             f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
     budgets = [math.ceil(int(p.max_frames) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
                for i, p in enumerate(cfg.pipeline)]
     bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")

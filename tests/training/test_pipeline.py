@@ -82,6 +82,9 @@ def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
     other = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "+pipeline=[{name: other, max_frames: 40}]"])
     with pytest.raises(ValueError, match="a different pipeline"):
         run_pipeline(other)
+    changed = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", PHASES[0].replace("[0.6, 1.5]", "[0.6, 2.0]")])
+    with pytest.raises(ValueError, match="finished phase 'near' ran with overrides"):
+        run_pipeline(changed)
 
 
 def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):

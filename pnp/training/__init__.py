@@ -1,3 +1,4 @@
 """What the recipes compose: the configuration schema (``config``), models, tasks (env
-factory), collection, the PPO update, the trainer and pipelines, checkpoints, and the
-rollout/evaluation API. Needs the ``[sim,train]`` extras."""
+factory), collection, the PPO update, the trainer and pipelines, checkpoints, the
+rollout/evaluation API, and teacher-student distillation (``student``, ``distill``).
+Needs the ``[sim,train]`` extras."""

@@ -59,6 +59,25 @@ class LoadedPolicy:
     folded: list[int] = field(default_factory=list)  # observation entries blinded by the backend change
 
 
+def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> DictConfig:
+    """A training ``env`` config changed, in place, into the evaluation env's: terminate at
+    success, close the gripper by threshold, start from the paper's layouts, then
+    ``env_overrides`` (``None`` values keep the default); returns it."""
+    env.num_worlds, env.max_episode_steps = int(num_worlds), None
+    env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
+    env.grasp_sampling = "threshold"  # the deterministic policy's gripper command
+    env.terminate_on_success = True  # a trial ends at its success (completion time)
+    for key, value in env_overrides.items():
+        if key not in env:
+            raise ValueError(f"evaluation: unknown env override {key!r}; env keys are {sorted(env)}")
+        if value is not None:
+            OmegaConf.update(env, key, value, merge=False)
+    if env.backend != "kinematic":
+        for key in env.kinematic:  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
+            env.kinematic[key] = False
+    return env
+
+
 def load_policy(checkpoint: str | Path, num_worlds: int, seed: int, **env_overrides) -> LoadedPolicy:
     """The checkpoint's actor in an evaluation env: the training env, changed to terminate
     at success, close the gripper by threshold and start from the paper's layouts, then by
@@ -67,19 +86,7 @@ def load_policy(checkpoint: str | Path, num_worlds: int, seed: int, **env_overri
     ckpt = load_checkpoint(Path(checkpoint))
     cfg = migrate(ckpt["cfg"])
     trained_backend = cfg.env.backend
-    env = cfg.env
-    env.num_worlds, env.max_episode_steps = int(num_worlds), None
-    env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
-    env.grasp_sampling = "threshold"  # the deterministic policy's gripper command
-    env.terminate_on_success = True  # a trial ends at its success (completion time)
-    for key, value in env_overrides.items():
-        if key not in env:
-            raise ValueError(f"load_policy: unknown env override {key!r}; env keys are {sorted(env)}")
-        if value is not None:
-            OmegaConf.update(env, key, value, merge=False)
-    if env.backend != "kinematic":
-        for key in env.kinematic:  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
-            env.kinematic[key] = False
+    env = evaluation_env_config(cfg.env, num_worlds, **env_overrides)
     seed_everything(seed)
     tenv = make_env(env, cfg.curriculum, seed)
     models = make_models(cfg.model, cfg.loss, tenv)

@@ -42,10 +42,12 @@ from pnp.training.tasks import make_env, schedule_of
 RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress", "env.nthread")
 
 
-def make_loss(loss_cfg: DictConfig, models) -> PopArtMAPPOLoss:
-    loss = PopArtMAPPOLoss(models.actor, models.critic, models.popart, clip_epsilon=float(loss_cfg.clip_epsilon),
-                           entropy_coeff=float(loss_cfg.entropy_coeff), critic_coeff=float(loss_cfg.critic_coeff),
-                           loss_critic_type=str(loss_cfg.loss_critic_type))
+def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = PopArtMAPPOLoss,
+              **loss_kwargs) -> PopArtMAPPOLoss:
+    """The MAPPO loss of ``loss_cfg`` (or ``loss_cls``, a subclass, with its ``loss_kwargs``)."""
+    loss = loss_cls(models.actor, models.critic, models.popart, clip_epsilon=float(loss_cfg.clip_epsilon),
+                    entropy_coeff=float(loss_cfg.entropy_coeff), critic_coeff=float(loss_cfg.critic_coeff),
+                    loss_critic_type=str(loss_cfg.loss_critic_type), **loss_kwargs)
     loss.set_keys(reward=REWARD, action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE,
                   value_target=VALUE_TARGET, done="done", terminated="terminated", loc=LOC, scale=SCALE)
     loss.make_value_estimator(gamma=float(loss_cfg.gamma), lmbda=float(loss_cfg.lmbda))

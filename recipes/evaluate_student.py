@@ -1,0 +1,84 @@
+"""Evaluate a distilled student beside its teacher over N trials each (deterministic policies).
+
+    python recipes/evaluate_student.py checkpoint=runs/distill_single out=results/eval_student_single.json
+    python recipes/evaluate_student.py checkpoint=runs/distill_dual trials=100 env.num_worlds=100
+
+Three runs in evaluation envs built alike (paper layouts, 45 s, ending at success; seeded
+by ``seed``): ``student`` on its noisy observation, ``teacher_noisy`` with the same noise
+model on its own observation layout (stage from the simulator), and ``teacher_clean``, the
+reference. Writes one JSON file with the three ``summarise`` figures (success rate,
+completion time, failure causes, stages), the noise model and the provenance, and a
+markdown table beside it (default: ``<run>/eval_student_<backend>.json|md``). The top-level
+``success_rate`` and completion times are the student's.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from pnp.task import EPISODE_S, HL_DT
+from pnp.training.checkpoint import resolve_checkpoint
+from pnp.training.collect import seconds
+from pnp.training.provenance import provenance
+from pnp.training.student import evaluate_views
+
+LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
+          "teacher_clean": "Teacher (clean observations)"}
+
+
+def table_md(result: dict) -> str:
+    rows = []
+    for name, label in LABELS.items():
+        r = result[name]
+        t = r["completion_time_mean_s"]
+        time_s = "-" if t is None else f"{t:.2f} ± {r['completion_time_std_s']:.2f}"
+        rows.append(f"| {label} | {100 * r['success_rate']:.1f} | {time_s} |")
+    return ("| Policy | Success rate (%) | Completion time (s) |\n| --- | --- | --- |\n" + "\n".join(rows) +
+            f"\n\n{result['trials']} trials each on the {result['backend']} backend, {result['num_robots']} "
+            f"robot(s), seed {result['seed']}. Student `{result['checkpoint']}` (iteration "
+            f"{result['checkpoint_iteration']}), teacher `{result['teacher']}`.\n")
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+    t0 = time.monotonic()
+    overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
+    num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
+    ecfg, ckpt, runs = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), bool(cfg.progress),
+                                      **overrides)
+    env, counters, student = ecfg.env, ckpt["counters"], runs["student"]
+    result = {
+        "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),
+        "start_range_m": [float(x) for x in env.start_range],
+        "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)),
+        "trials": student["trials"], "success_rate": student["success_rate"],
+        "completion_time_mean_s": student["completion_time_mean_s"],
+        "completion_time_std_s": student["completion_time_std_s"], **runs,
+        "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
+        "seed": int(cfg.seed), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
+        "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
+        "teacher": str(ecfg.distill.teacher), "beta": float(ecfg.distill.beta),
+        "direction": str(ecfg.distill.direction), "trained_backend": ckpt["cfg"]["env"]["backend"],
+        "wall_s": time.monotonic() - t0, **provenance(),
+    }
+    out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_student_{env.backend}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    out.with_suffix(".md").write_text(table_md(result))
+    result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
+    return result
+
+
+@hydra.main(config_path="config", config_name="evaluate_student", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    result = evaluate(cfg)
+    print(Path(result["markdown"]).read_text())
+    print(f"wrote {result['json']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -128,4 +128,6 @@ def episode_metrics(batch: TensorDictBase) -> dict[str, float]:
         final = nxt[STAGE][stage >= 0]
         out["mean_final_stage"] = float(final.float().mean()) if final.numel() else math.nan
         out.update(_shares(final, n_stages, "final_stage_share"))
+    else:  # lambda(e) is the final stage: the same figure, under the name both modes log
+        out["mean_final_stage"] = out["mean_end_stage"]
     return out

@@ -93,6 +93,11 @@ class ModelConfig:
     grasp_min_prob: float = 0.0
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
     obs_norm: bool = True  # running observation normalisation (in the checkpoint)
+    # none: one actor and one critic (ours). The per-stage baselines (pnp.training.baselines)
+    # keep one actor and one critic per stage: bendikas, the sub-task's pair acts in every
+    # stage (Bendikas et al.); erskine, each stage's actor acts, every stage's critic values
+    # (Erskine et al.). Their reward is curriculum.schedule=fixed.
+    per_stage: str = "none"
 
 
 @dataclass
@@ -128,6 +133,36 @@ class CollectConfig:
     roll_in_max_steps: int = 200
     # Start every world's first episode at a random step of env.max_episode_steps.
     desync_episodes: bool = False
+
+
+@dataclass
+class SequentialConfig:
+    """Bendikas et al.: sub-task k (episodes end with success at S_{k+1}) trains until its
+    success rate over the last ``window`` iterations, weighted by episodes, reaches
+    ``min_success``, or until it has used ``max_frames``; then policy k+1 starts from policy k."""
+
+    min_success: float = 0.9
+    window: int = 20
+    max_frames: int = 2_000_000
+    # Reaching S_{k+1} pays this share of the sub-task's best return, sum_j mu_j high_j /
+    # (1 - loss.gamma) over its terms. Why: the stage terms are positive, so without it an
+    # episode that ends at success earns less than one that hovers just short of it.
+    success_bonus: float = 1.0
+
+
+@dataclass
+class CooperativeConfig:
+    """Erskine et al.: policy i maximises ``(1 - mix) A_i + mix A_{i+1}``."""
+
+    mix: float = 0.5
+
+
+@dataclass
+class BaselineConfig:
+    """Settings of the per-stage baselines, read when ``model.per_stage`` names one."""
+
+    bendikas: SequentialConfig = field(default_factory=SequentialConfig)
+    erskine: CooperativeConfig = field(default_factory=CooperativeConfig)
 
 
 @dataclass
@@ -180,6 +215,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
     # Non-empty: run these phases back to back in out_dir, each warm-started from the last
     # (pnp.training.pipeline); re-running the same command resumes where it stopped.
     pipeline: List[PhaseConfig] = field(default_factory=list)

@@ -16,8 +16,10 @@ from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, 
 from pnp.losses.distributions import TanhNormalGripper
 from pnp.task import ACTION_NAMES
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, VALUE
+from pnp.training.stage_ensemble import StageEnsemble
 
 GRASP_ENTRY = ACTION_NAMES.index("grasp")
+PER_STAGE = ("none", "bendikas", "erskine")  # model.per_stage
 
 
 class ObsNorm(nn.Module):
@@ -91,7 +93,7 @@ def fold_constant_inputs(obs_norm: ObsNorm, nets, tol: float = 1e-3) -> list[int
     if not len(idx):
         return []
     const = obs_norm(obs_norm.mean.float().unsqueeze(0))[0, idx]  # the normalised old value
-    for net in nets:
+    for net in [m for n in nets for m in getattr(n, "members", [n])]:  # a StageEnsemble: each member
         w, b = net.mlp.params["0", "weight"], net.mlp.params["0", "bias"]
         per_agent = w.shape[-1] // net.n_agents if net.centralised else w.shape[-1]
         for start in range(0, w.shape[-1], per_agent):  # [obs | stage] per agent when centralised
@@ -155,13 +157,17 @@ class PopArt(nn.Module):
     move it rescales this head so the values it predicts stay the same ("preserving
     outputs"), which plain running return normalisation does not. Statistics move once per
     iteration (:meth:`update`), never inside the loss.
+
+    ``width`` > 1: that many values side by side, each with its own statistics and affine
+    map (Erskine et al.'s per-stage critics, whose returns differ in scale).
     """
 
-    def __init__(self, beta: float):
+    def __init__(self, beta: float, width: int = 1):
         super().__init__()
-        self.stats = PopArtValueNorm(shape=1, beta=beta)
-        self.weight = nn.Parameter(torch.ones(1))
-        self.bias = nn.Parameter(torch.zeros(1))
+        self.width = int(width)
+        self.stats = PopArtValueNorm(shape=self.width, beta=beta)
+        self.weight = nn.Parameter(torch.ones(self.width))
+        self.bias = nn.Parameter(torch.zeros(self.width))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.stats.denormalize(x * self.weight + self.bias)
@@ -169,10 +175,11 @@ class PopArt(nn.Module):
     @torch.no_grad()
     def update(self, targets: torch.Tensor) -> None:
         first = bool(self.stats.debiasing_term == 0)  # nothing to preserve yet
-        m0, s0 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
-        self.stats.update(targets.reshape(-1, 1))
+        zero = torch.zeros(self.width)
+        m0, s0 = self.stats.denormalize(zero), self.stats.scale()
+        self.stats.update(targets.reshape(-1, self.width))
         if not first:
-            m1, s1 = self.stats.denormalize(torch.zeros(1)), self.stats.scale()
+            m1, s1 = self.stats.denormalize(zero), self.stats.scale()
             self.weight.mul_(s0 / s1)
             self.bias.copy_((s0 * self.bias + m0 - m1) / s1)
 
@@ -187,11 +194,11 @@ class Models:
     obs_norm: ObsNorm | None
 
     @property
-    def actor_net(self) -> AgentNet:
+    def actor_net(self) -> AgentNet | StageEnsemble:
         return self.actor.module[0].module
 
     @property
-    def critic_net(self) -> AgentNet:
+    def critic_net(self) -> AgentNet | StageEnsemble:
         return self.critic.module
 
 
@@ -225,14 +232,24 @@ def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
 
 
 def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Models:
-    """Decentralised actor with shared parameters; critic centralised iff there are 2 robots."""
+    """Decentralised actor with shared parameters; critic centralised iff there are 2 robots.
+    With ``model.per_stage``, one such actor and critic per stage (:class:`StageEnsemble`)."""
     n_agents = env.observation_spec[OBS].shape[-2]
     n_obs = env.observation_spec[OBS].shape[-1]
     n_in = n_obs + env.observation_spec[STAGE_ONE_HOT].shape[-1]
     spec = env.full_action_spec_unbatched[ACTION]
     obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None
-    actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
-                         head=_param_head(model_cfg, spec.shape[-1]))
+    if model_cfg.per_stage not in PER_STAGE:
+        raise ValueError(f"model.per_stage must be one of {PER_STAGE}, got {model_cfg.per_stage!r}")
+    per_stage = model_cfg.per_stage != "none"
+    n_stages = env.observation_spec[STAGE_ONE_HOT].shape[-1]
+    actor_head = _param_head(model_cfg, spec.shape[-1])
+    if per_stage:
+        actor_net = StageEnsemble([AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells)
+                                   for _ in range(n_stages)], obs_norm, actor_head)
+    else:
+        actor_net = AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells, obs_norm=obs_norm,
+                             head=actor_head)
     dist_kwargs = {"low": spec.space.low, "high": spec.space.high}
     if model_cfg.grasp_dist == "bernoulli":
         dist_cls, dist_kwargs["gripper_index"] = TanhNormalGripper, GRASP_ENTRY
@@ -247,7 +264,15 @@ def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Mo
     )
     if loss_cfg.value_norm not in ("popart", "none"):
         raise ValueError(f"loss.value_norm must be 'popart' or 'none', got {loss_cfg.value_norm!r}")
-    popart = PopArt(float(loss_cfg.popart_beta)) if loss_cfg.value_norm == "popart" else None
-    critic_net = AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells, head=popart, obs_norm=obs_norm)
+    values = n_stages if model_cfg.per_stage == "erskine" else 1  # Erskine: every stage's value
+    popart = PopArt(float(loss_cfg.popart_beta), values) if loss_cfg.value_norm == "popart" else None
+    if per_stage:
+        critic_net = StageEnsemble([AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells)
+                                    for _ in range(n_stages)], obs_norm, popart, concat=values > 1)
+        if model_cfg.per_stage == "bendikas":  # sub-task 0 first; pnp.training.sequential moves it on
+            actor_net.route_all_to(0)
+            critic_net.route_all_to(0)
+    else:
+        critic_net = AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells, head=popart, obs_norm=obs_norm)
     critic = TensorDictModule(critic_net, in_keys=[OBS, STAGE_ONE_HOT], out_keys=[VALUE])
     return Models(actor, critic, popart, obs_norm)

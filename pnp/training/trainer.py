@@ -21,6 +21,7 @@ from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 from tqdm import tqdm
 
 from pnp.losses.mappo import PopArtMAPPOLoss
+from pnp.training.baselines import baseline_loss, use_baseline_schedule
 from pnp.training.checkpoint import (
     adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, rng_state, save_checkpoint,
     seed_everything, set_rng_state,
@@ -33,6 +34,7 @@ from pnp.training.keys import (
 from pnp.training.models import fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
 from pnp.training.ppo import ppo_update
+from pnp.training.sequential import SequentialSchedule
 from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.tasks import make_env, schedule_of
 
@@ -111,6 +113,8 @@ def truncate_metrics(path: Path, iteration: int) -> None:
 class Trainer:
     """One training run (or its resumption) in ``cfg.out_dir``."""
 
+    subtasks: SequentialSchedule | None = None  # Bendikas et al.: one sub-task at a time
+
     def __init__(self, cfg: DictConfig):
         cfg, ckpt = resume_config(cfg)
         if cfg.out_dir is None:
@@ -120,9 +124,14 @@ class Trainer:
         self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
         seed_everything(int(cfg.seed))
         self.env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
+        use_baseline_schedule(self.env, cfg)  # the per-stage baselines' rewards (model.per_stage)
         self.models = make_models(cfg.model, cfg.loss, self.env)
-        self.loss = make_loss(cfg.loss, self.models)
+        loss_cls, loss_kwargs = baseline_loss(cfg)
+        self.loss = make_loss(cfg.loss, self.models, loss_cls, **loss_kwargs)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
+        if cfg.model.per_stage == "bendikas":
+            self.subtasks = SequentialSchedule(cfg.baseline.bendikas, schedule_of(self.env), self.models.actor_net,
+                                               self.models.critic_net, self.optim)
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
         sc = cfg.env.start_curriculum
         self.start_curriculum = StartCurriculum(self.env.base_env, sc) if sc.enabled else None
@@ -132,6 +141,8 @@ class Trainer:
             self._restore(ckpt)
         else:
             self._start()
+        if self.subtasks is not None:
+            self.subtasks.sync()
         self.wandb_id = ckpt.get("wandb_id") if ckpt else None
         self.logger = make_logger(cfg, self.out_dir, self.wandb_id)
         if cfg.logger.backend == "wandb":
@@ -151,6 +162,8 @@ class Trainer:
             self.roll_in.length.copy_(ckpt["roll_in"])
         if self.start_curriculum is not None and "start_curriculum" in ckpt:
             self.start_curriculum.load_state_dict(ckpt["start_curriculum"])
+        if self.subtasks is not None:
+            self.subtasks.load_state_dict(ckpt["subtasks"])
         truncate_metrics(self.metrics_path, self.counters["iteration"])
 
     def _start(self) -> None:
@@ -165,6 +178,8 @@ class Trainer:
             # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
             # (entropy -19) policy to KL 74 in its first iteration (measured).
             load_optimiser(self.optim, init["optim"])
+            if self.subtasks is not None and "subtasks" in init:  # a pipeline's next phase: the same sub-task
+                self.subtasks.load_state_dict(init["subtasks"])
             if m.obs_norm is not None and cfg.warm_start_fold_constant:
                 print(f"warm start: folded constant observation entries "
                       f"{fold_constant_inputs(m.obs_norm, [m.actor_net, m.critic_net])}")
@@ -187,6 +202,7 @@ class Trainer:
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
             **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
             **({"start_curriculum": self.start_curriculum.state_dict()} if self.start_curriculum is not None else {}),
+            **({"subtasks": self.subtasks.state_dict()} if self.subtasks is not None else {}),
         })
 
     def iteration(self, steps: int) -> dict:
@@ -204,6 +220,8 @@ class Trainer:
         if self.start_curriculum is not None:  # the range these episodes started in, then widen
             row["start_range_high"] = self.start_curriculum.high
             self.start_curriculum.update(row)
+        if self.subtasks is not None:  # the sub-task that trained, and whether it ended here
+            row.update(self.subtasks.update(row, batch.numel()))
         return row
 
     def run(self, stop_when: Callable[[dict], bool] | None = None, bar: tqdm | None = None) -> dict:

@@ -1,0 +1,299 @@
+"""The comparison with the paper's baselines: Table I, Fig. 6 and the training-efficiency claim.
+
+    python recipes/table1.py                               # 5 methods x 3 seeds, then 500 MuJoCo trials each
+    python recipes/table1.py methods=[dynamic,bendikas] seeds=[0]   # a subset
+
+Every method trains ``experiment=table1_<method>`` (the same phases and frame budget,
+``recipes/config/experiment/table1_common.yaml``) with each seed into
+``runs_dir/<method>_s<seed>``, one training at a time; a finished run is skipped and a
+stopped one resumes (the pipeline's own resume). Each final policy then runs
+``eval.trials`` deterministic episodes (cached beside the run). Writes ``out``: per method
+and seed the frames and wall time until the training mean end stage and success rate reach
+their thresholds (null if never), the evaluation, and the ratios against the best
+baseline; and beside it PNGs of the mean end-of-episode stage (paper Fig. 6) and the
+training success rate vs frames, mean over seeds with their min-max band.
+
+Bendikas et al.'s sub-tasks before the last end their episodes at S_{k+1} and count that as
+success: their iterations are left out of the thresholds and of the success curve (the
+stage curve shows them: its staircase is the sub-task sequence).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig, OmegaConf
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from pnp.terms import STAGES  # noqa: E402
+from pnp.training.baselines import use_baseline_schedule  # noqa: E402
+from pnp.training.collect import windowed_mean  # noqa: E402
+from pnp.training.config import register  # noqa: E402
+from pnp.training.models import make_models  # noqa: E402
+from pnp.training.pipeline import load_state, phase_dir, run_pipeline  # noqa: E402
+from pnp.training.plots import load_metrics  # noqa: E402
+from pnp.training.provenance import provenance  # noqa: E402
+from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
+from pnp.training.stage_ensemble import parameter_count  # noqa: E402
+from pnp.training.tasks import make_env  # noqa: E402
+
+register()
+
+CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
+LAST_SUBTASK = len(STAGES) - 1
+LABELS = {"mean_end_stage": "stage", "success_rate": "success"}
+CURVES = {"end_stage": "mean end-of-episode stage", "success_rate": "training success rate (full task)"}
+EXITS = {1: "success", 2: "frames"}  # pnp.training.sequential's subtask_exit codes
+
+
+def train_config(cfg: DictConfig, method: str, seed: int) -> DictConfig:
+    run = Path(cfg.runs_dir) / f"{method}_s{seed}"
+    overrides = [f"experiment=table1_{method}", *cfg.train, f"seed={seed}", f"out_dir={run}"]
+    if GlobalHydra.instance().is_initialized():  # under @hydra.main: same config folder
+        return compose("train", overrides=overrides)
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def budget_frames(tcfg: DictConfig) -> int:
+    if not tcfg.pipeline:
+        raise ValueError("experiment=table1_<method> must declare a pipeline (its phases and frame budget)")
+    return sum(int(p.max_frames) for p in tcfg.pipeline)
+
+
+def run_rows(run: Path) -> list[dict]:
+    """Every phase's metric rows on one axis: frames and wall time cumulative over the
+    phases; ``end_stage`` the stage episodes end in whatever the phase's reading."""
+    rows, frames, wall = [], 0, 0.0
+    for i, phase in enumerate(load_state(run)):
+        for r in load_metrics(phase_dir(run, i, phase["name"]) / "metrics.jsonl"):
+            rows.append({**r, "frames": frames + r["frames"], "wall_s": wall + r["wall_s"], "phase": phase["name"],
+                         "end_stage": r.get("mean_final_stage", r["mean_end_stage"])})
+        frames, wall = frames + phase["frames"], wall + phase["wall_s"]
+    return rows
+
+
+def full_task(rows: list[dict]) -> list[dict]:
+    """Rows whose episodes are the whole task (all but Bendikas' earlier sub-tasks)."""
+    return [r for r in rows if r.get("subtask", LAST_SUBTASK) == LAST_SUBTASK]
+
+
+def first_reaching(rows: list[dict], key: str, threshold: float, window: int) -> dict | None:
+    """The first row at which ``key``'s episode-weighted mean over the last ``window`` rows reaches ``threshold``."""
+    for i in range(window, len(rows) + 1):
+        value = windowed_mean(rows[:i], key, window)
+        if value is not None and value >= threshold:
+            return rows[i - 1]
+    return None
+
+
+def label(metric: str, threshold: float) -> str:
+    """``mean_end_stage``, 5.5 -> ``stage_5_5`` (the JSON key's suffix)."""
+    if metric not in LABELS:
+        raise ValueError(f"thresholds: unknown metric {metric!r}; choose from {sorted(LABELS)}")
+    return f"{LABELS[metric]}_{threshold:g}".replace(".", "_")
+
+
+def efficiency(rows: list[dict], thresholds: DictConfig, window: int) -> dict:
+    out, task = {}, full_task(rows)
+    for metric, threshold in thresholds.items():
+        row = first_reaching(task, "end_stage" if metric == "mean_end_stage" else metric, float(threshold), window)
+        name = label(metric, float(threshold))
+        out[f"frames_to_{name}"] = None if row is None else int(row["frames"])
+        out[f"wall_s_to_{name}"] = None if row is None else float(row["wall_s"])
+    return out
+
+
+def subtask_history(rows: list[dict]) -> list[dict]:
+    """Bendikas' sub-task ends: which, how (success threshold or frame cap), at what frame count."""
+    return [{"subtask": int(r["subtask"]), "exit": EXITS[int(r["subtask_exit"])], "frames": int(r["frames"])}
+            for r in rows if r.get("subtask_exit", 0) > 0]
+
+
+def final_checkpoint(run: Path) -> Path:
+    phases = load_state(run)
+    return phase_dir(run, len(phases) - 1, phases[-1]["name"]) / "checkpoint.pt"
+
+
+def evaluate(run: Path, ecfg: DictConfig) -> dict:
+    """The run's final policy over ``ecfg.trials`` deterministic episodes; cached in the run folder."""
+    ckpt = final_checkpoint(run)
+    settings = {**OmegaConf.to_container(ecfg, resolve=True), "checkpoint": str(ckpt), "mtime": ckpt.stat().st_mtime}
+    cache = run / f"table1_eval_{ecfg.backend}.json"
+    if cache.is_file() and json.loads(cache.read_text())["settings"] == settings:
+        return json.loads(cache.read_text())["result"]
+    overrides = {k: ecfg[k] for k in ("backend", "nthread", "start_range", "max_episode_steps")}
+    pol = load_policy(ckpt, min(int(ecfg.num_worlds), int(ecfg.trials)), int(ecfg.seed), **overrides)
+    t0 = time.monotonic()
+    summary = summarise(run_trials(pol.env, pol.actor, int(ecfg.trials)))
+    pol.env.close()
+    keep = ("trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
+            "mean_end_stage")
+    result = {**{k: summary[k] for k in keep}, "eval_wall_s": time.monotonic() - t0}
+    cache.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")
+    return result
+
+
+def pooled_times(evals: list[dict]) -> tuple[float | None, float | None]:
+    """Mean and population std of the completion times of all successful trials of all seeds."""
+    parts = [(round(e["success_rate"] * e["trials"]), e["completion_time_mean_s"], e["completion_time_std_s"])
+             for e in evals if e["completion_time_mean_s"] is not None]
+    n = sum(p[0] for p in parts)
+    if not n:
+        return None, None
+    mean = sum(k * m for k, m, _ in parts) / n
+    var = sum(k * (s * s + m * m) for k, m, s in parts) / n - mean * mean
+    return mean, math.sqrt(max(var, 0.0))
+
+
+def method_mean(seeds: dict, key: str) -> float | None:
+    """Mean over seeds; ``None`` unless every seed has a value (a threshold some seed never reached)."""
+    values = [s[key] for s in seeds.values()]
+    return None if not values or any(v is None for v in values) else float(np.mean(values))
+
+
+def ratios(methods: dict, ours: str, keys: list[str]) -> dict:
+    """Frames of the best baseline over ours' per threshold (> 1: ours needs fewer), and our
+    completion time over that of the baseline with the highest success rate (< 1: faster)."""
+    baselines = {m: r for m, r in methods.items() if m != ours}
+    out = {"efficiency": {}, "best_baseline": {}}
+    for key in keys:
+        mine = method_mean(methods[ours]["seeds"], key) if ours in methods else None
+        theirs = {m: v for m, r in baselines.items() if (v := method_mean(r["seeds"], key)) is not None}
+        best = min(theirs, key=theirs.get) if theirs else None
+        out["best_baseline"][key] = best
+        out["efficiency"][key] = theirs[best] / mine if best is not None and mine else None
+    by_success = max(baselines, key=lambda m: baselines[m]["success_rate"], default=None)
+    t_ours = methods.get(ours, {}).get("completion_time_mean_s")
+    t_best = baselines[by_success]["completion_time_mean_s"] if by_success is not None else None
+    out["execution_time"] = t_ours / t_best if t_ours is not None and t_best else None
+    out["best_baseline"]["execution_time"] = by_success
+    return out
+
+
+def binned(rows: list[dict], key: str, edges: np.ndarray) -> np.ndarray:
+    """Episode-weighted means of ``key`` per frame bin (NaN where no episode ended)."""
+    sums, counts = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
+    for r in rows:
+        v, n = r.get(key, math.nan), r.get("episodes", 0.0)
+        if n > 0 and math.isfinite(v):
+            i = min(max(int(np.searchsorted(edges, r["frames"], side="left")) - 1, 0), len(sums) - 1)
+            sums[i], counts[i] = sums[i] + v * n, counts[i] + n
+    with np.errstate(invalid="ignore"):
+        return np.where(counts > 0, sums / np.maximum(counts, 1e-12), np.nan)
+
+
+def plot_curves(curves: dict[str, dict[int, list[dict]]], budget: int, bins: int, phases: list[tuple[int, str]],
+                out: Path) -> list[Path]:
+    edges = np.linspace(0, budget, bins + 1)
+    x, written = (edges[:-1] + edges[1:]) / 2 / 1e6, []
+    for key, ylabel in CURVES.items():
+        fig, ax = plt.subplots(figsize=(6.5, 3.8))
+        for method, by_seed in curves.items():
+            runs = [full_task(rows) if key == "success_rate" else rows for rows in by_seed.values()]
+            ys = np.stack([binned(rows, key, edges) for rows in runs if rows] or [np.full(bins, np.nan)])
+            with warnings.catch_warnings():  # bins where no seed ended an episode stay NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean, lo, hi = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
+            (line,) = ax.plot(x, mean, label=f"{method} ({len(by_seed)} seeds)")
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+        for start, name in phases:
+            ax.axvline(start / 1e6, color="k", lw=0.8, alpha=0.4)
+            ax.text(start / 1e6, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", rotation=90)
+        top = LAST_SUBTASK + 0.2 if key == "end_stage" else 1.0
+        ax.set(xlabel="training frames (millions)", ylabel=ylabel, ylim=(0, top))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = out.with_name(f"{out.stem}_{key}.png")
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def method_parameters(tcfg: DictConfig) -> dict[str, int]:
+    """Trainable parameters of the method's actor and critic (a 1-world kinematic env for the shapes)."""
+    cfg = OmegaConf.merge(tcfg, {"env": {"num_worlds": 1, "backend": "kinematic"}})
+    env = make_env(cfg.env, cfg.curriculum, 0)
+    use_baseline_schedule(env, cfg)
+    models = make_models(cfg.model, cfg.loss, env)
+    env.close()
+    return parameter_count(models.actor_net, models.critic_net)
+
+
+def train_command(cfg: DictConfig, method: str) -> str:
+    extra = "".join(f" {o}" for o in cfg.train)
+    run = f"{cfg.runs_dir}/{method}_s<seed>"
+    return f"python recipes/train.py experiment=table1_{method}{extra} seed=<seed> out_dir={run}"
+
+
+def run_table1(cfg: DictConfig) -> dict:
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0, prov = time.monotonic(), provenance()  # before any output: the tree is still clean
+    if cfg.ours not in cfg.methods:
+        raise ValueError(f"ours={cfg.ours!r} is not among methods {list(cfg.methods)}")
+    methods, curves, budgets, phases = {}, {}, {}, []
+    for method in cfg.methods:
+        seeds, evals, curves[method] = {}, [], {}
+        for seed in cfg.seeds:
+            tcfg = train_config(cfg, method, int(seed))
+            budgets[method] = budget_frames(tcfg)
+            run = Path(tcfg.out_dir)
+            if not run_pipeline(tcfg)["finished"]:
+                raise SystemExit(f"stopped during {method} seed {seed} (a signal or the wall-time limit); "
+                                 "rerun to resume")
+            rows = curves[method][int(seed)] = run_rows(run)
+            phases = phases or [(sum(p["frames"] for p in load_state(run)[:i]), p["name"])
+                                for i, p in enumerate(load_state(run))]
+            ev = evaluate(run, cfg.eval)
+            evals.append(ev)
+            seeds[str(seed)] = {**efficiency(rows, cfg.thresholds, int(cfg.window)), "wall_s": rows[-1]["wall_s"],
+                                "frames": rows[-1]["frames"], "eval": ev, "run": str(run)}
+            if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
+                seeds[str(seed)]["subtasks"] = subtask_history(rows)
+        if len(set(budgets.values())) > 1:
+            raise ValueError(f"the methods must share one frame budget; got {budgets}")
+        t_mean, t_std = pooled_times(evals)
+        methods[method] = {
+            "seeds": seeds, "trials": int(cfg.eval.trials), "backend": str(cfg.eval.backend),
+            "success_rate": float(np.mean([e["success_rate"] for e in evals])),
+            "success_rate_std_over_seeds": float(np.std([e["success_rate"] for e in evals])),
+            "completion_time_mean_s": t_mean, "completion_time_std_s": t_std, "budget_frames": budgets[method],
+            "command": train_command(cfg, method), "parameters": method_parameters(tcfg),
+        }
+    keys = [f"frames_to_{label(m, float(v))}" for m, v in cfg.thresholds.items()]
+    r = ratios(methods, cfg.ours, keys)
+    pngs = plot_curves(curves, next(iter(budgets.values())), int(cfg.curve_bins), phases, out)
+    doc = {"methods": methods, "efficiency_ratio": r["efficiency"].get(keys[0]), "efficiency_ratios": r["efficiency"],
+           "execution_time_ratio": r["execution_time"], "best_baselines": r["best_baseline"], "ours": cfg.ours,
+           "thresholds": OmegaConf.to_container(cfg.thresholds), "window_iterations": int(cfg.window),
+           "eval": OmegaConf.to_container(cfg.eval), "plots": [str(p) for p in pngs],
+           "wall_s": time.monotonic() - t0, **prov}
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    return doc
+
+
+@hydra.main(config_path="config", config_name="table1", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    doc = run_table1(cfg)
+    for method, m in doc["methods"].items():
+        print(method, f"success {m['success_rate']:.3f}", f"time {m['completion_time_mean_s']}",
+              {s: {k: v for k, v in r.items() if k.startswith("frames_to")} for s, r in m["seeds"].items()})
+    print(f"efficiency ratio {doc['efficiency_ratio']}, execution time ratio {doc['execution_time_ratio']}")
+    print(f"wrote {cfg.out}")
+
+
+if __name__ == "__main__":
+    main()

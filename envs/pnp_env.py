@@ -39,8 +39,8 @@ from pnp.backend import Backend, MujocoBackend
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.layout import START_RANGE, sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, default_reward, geometry, observations,
-    reward_terms, stage_conditions, update_claims,
+    ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState, default_reward, geometry,
+    observations, reward_terms, stage_conditions, update_claims,
 )
 from pnp.terms import CONDITIONS, REWARD_TERMS
 
@@ -300,12 +300,37 @@ class PnPEnv(RobotEnvBase):
         # States saved before handle claims lack them: every robot unclaimed.
         self._claim = state["_claim"].clone() if "_claim" in state else torch.full_like(self._claim, -1)
 
+    def physical_state(self) -> PnPState:
+        """The backend's current state, world frame (for analysis and disturbances; read only)."""
+        closed = self._last_action[..., 7] > 0.5
+        return self.backend.state(self._goal, self._init_goal_dist, closed.float())
+
     def ee_positions(self) -> torch.Tensor:
         """World-frame EE positions [N, R, 3] of the current state (for analysis)."""
-        closed = self._last_action[..., 7] > 0.5
-        return self.backend.state(self._goal, self._init_goal_dist, closed.float()).ee_pos.clone()
+        return self.physical_state().ee_pos.clone()
 
     def push_box(self, world: int, force) -> None:
         """Apply an external wrench (N, N m; world frame) to one world's box for one step."""
         self.backend.push(world, np.asarray(force, dtype=np.float64))
+
+    def displace_box(self, worlds, offsets) -> None:
+        """Move the boxes of ``worlds`` (indices [M]) by horizontal ``offsets`` [M, 2] (m, world
+        frame) and set them down now: on the floor, level at their yaw, at rest, released by
+        any gripper. The policy sees it in the next step's observation. The episode's lift
+        is forgotten: success needs the box lifted again (else one dropped into the goal
+        would count)."""
+        worlds = torch.as_tensor(worlds, dtype=torch.long).reshape(-1)
+        offsets = torch.as_tensor(offsets, dtype=torch.float32)
+        if tuple(offsets.shape) != (len(worlds), 2):
+            raise ValueError(f"displace_box: offsets must have shape ({len(worlds)}, 2), one (dx, dy) per world, "
+                             f"got {tuple(offsets.shape)}")
+        bad = [w for w in worlds.tolist() if not 0 <= w < self.num_worlds]
+        if bad or len(set(worlds.tolist())) != len(worlds):
+            raise ValueError(f"displace_box: worlds must be distinct indices in [0, {self.num_worlds}), "
+                             f"got {worlds.tolist()}")
+        if not torch.isfinite(offsets).all():
+            raise ValueError(f"displace_box: offsets must be finite, got {offsets.tolist()}")
+        if len(worlds):
+            self.backend.displace_box(worlds, offsets)
+            self._was_lifted[worlds] = False
 

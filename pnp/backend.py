@@ -20,6 +20,8 @@ from pnp.robot import ARM_DEFAULT, FINGER_STROKE, STANDING_HEIGHT
 from pnp.scene import PHYSICS_DT, build_scene
 from pnp.task import HL_DT, PnPState, yaw_rotation
 
+BOX_DROP = 0.002  # m: a box is set down this far above the floor, never into it
+
 
 @dataclass
 class Layout:
@@ -59,6 +61,12 @@ class Backend(ABC):
         """Apply an external wrench to the box of one world during the next step."""
         raise NotImplementedError(f"{type(self).__name__} does not model external forces")
 
+    def displace_box(self, worlds: torch.Tensor, offsets: torch.Tensor) -> None:
+        """Move the boxes of ``worlds`` (distinct long indices [M]) by ``offsets`` [M, 2] (m,
+        world frame) and set them down: on the floor, level at their yaw, at rest, out of
+        any gripper. Other worlds are untouched."""
+        raise NotImplementedError(f"{type(self).__name__} cannot move its box")
+
     def close(self) -> None:
         pass
 
@@ -90,7 +98,7 @@ class MujocoBackend(Backend):
         size = layout.box_size.double().numpy()
         b = i.box_qpos
         qpos[:, b : b + 2] = xyz[:, :2]
-        qpos[:, b + 2] = size[:, 2] / 2 + 0.002
+        qpos[:, b + 2] = size[:, 2] / 2 + BOX_DROP
         qpos[:, b + 3] = np.cos(xyz[:, 2] / 2)
         qpos[:, b + 4 : b + 6] = 0.0
         qpos[:, b + 6] = np.sin(xyz[:, 2] / 2)
@@ -138,6 +146,18 @@ class MujocoBackend(Backend):
 
     def push(self, world, force):
         self.physics.push(world, self.idx.box_body, np.asarray(force, dtype=np.float64))
+
+    def displace_box(self, worlds, offsets):
+        ids, b = worlds.cpu().numpy(), self.idx.box_qpos
+        qpos, v = self.physics.qpos, self.idx.box_qvel  # views into the batched state
+        w, x, y, z = qpos[ids, b + 3 : b + 7].T
+        half_yaw = 0.5 * np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))  # a lifted box may tilt: level it
+        zero = np.zeros_like(w)
+        qpos[ids, b : b + 2] += offsets.double().cpu().numpy()
+        qpos[ids, b + 2] = self.box_size[worlds, 2].double().numpy() / 2 + BOX_DROP
+        qpos[ids, b + 3 : b + 7] = np.stack([np.cos(half_yaw), zero, zero, np.sin(half_yaw)], -1)
+        self.physics.qvel[ids, v : v + 6] = 0.0
+        self.physics.forward(ids)  # the pad touch sensors of the new configuration: released
 
     def state(self, goal, init_goal_dist, grasp_cmd):
         i = self.idx

@@ -89,8 +89,9 @@ Simplifications (with respect to the MuJoCo backend):
   that carries the box is j1 - j6 (exact while the gripper is vertical, i.e. unless j5
   is at its limit).
 * Box mass is stored but only matters through the dual-robot "heavy box" rule.
-* ``push`` (external wrenches) is not modelled (``NotImplementedError``). The backend
-  never diverges (``step`` returns all False).
+* ``push`` (external wrenches) is not modelled (``NotImplementedError``); ``displace_box``
+  (a box moved and set down elsewhere, released) is. The backend never diverges
+  (``step`` returns all False).
 """
 from __future__ import annotations
 
@@ -179,6 +180,21 @@ class KinematicBackend(Backend):
         self._st = kinematic_step(self._st, action.float(), self.params)
         self._make_views()
         return torch.zeros(self.num_worlds, dtype=torch.bool)
+
+    def displace_box(self, worlds: torch.Tensor, offsets: torch.Tensor) -> None:
+        st, w = self._st, worlds.long()
+        moved = torch.zeros(self.num_worlds, dtype=torch.bool)
+        moved[w] = True
+        shift = torch.zeros(self.num_worlds, 2)
+        shift[w] = offsets.float()
+        # New tensors, not in-place writes: earlier states may share these.
+        st["box_x"], st["box_y"] = st["box_x"] + shift[:, 0], st["box_y"] + shift[:, 1]
+        st["box_z"] = torch.where(moved, st["box_size"][:, 2] * 0.5, st["box_z"])
+        for k in ("box_vx", "box_vy", "box_vz"):
+            st[k] = torch.where(moved, 0.0, st[k])
+        st["box_vel"] = torch.where(moved.unsqueeze(-1), 0.0, st["box_vel"])
+        st["grasp"] = st["grasp"] & ~moved.unsqueeze(-1)  # closed fingers now hold nothing
+        self._derive()
 
     def state(self, goal: torch.Tensor, init_goal_dist: torch.Tensor, grasp_cmd: torch.Tensor) -> PnPState:
         return PnPState(**self._views, base_z=self._base_z, box_size=self._st["box_size"], goal=goal,

@@ -38,6 +38,7 @@ class BatchedPhysics:
         self._box_geom_names = [model.geom(int(g)).name for g in self._box_geoms]
         self._pending_xfrc: np.ndarray | None = None
         self._out: tuple[np.ndarray, np.ndarray] | None = None
+        self._scratch: mujoco.MjData | None = None  # for forward()
         # Offsets of qpos/qvel/time inside the full-physics state vector.
         self.time_adr = 0
         self.qpos_adr = 1
@@ -87,6 +88,17 @@ class BatchedPhysics:
         if self._pending_xfrc is None:
             self._pending_xfrc = np.zeros((self.num_worlds, self.model.nbody, 6))
         self._pending_xfrc[world, body] = wrench
+
+    def forward(self, ids: np.ndarray) -> None:
+        """Recompute the sensors of worlds ``ids`` after their state was edited (``mj_forward``:
+        contacts and touch forces of the new configuration; the state itself is unchanged)."""
+        if self._scratch is None:  # its own data: the rollout's keep their warm starts
+            self._scratch = mujoco.MjData(self.model)
+        d = self._scratch
+        for w in np.asarray(ids).reshape(-1).tolist():
+            mujoco.mj_setState(self.models[w], d, self.state[w], FULL)
+            mujoco.mj_forward(self.models[w], d)
+            self.sensordata[w] = d.sensordata
 
     # --- stepping ------------------------------------------------------------------------
     def step(self, ctrl: np.ndarray) -> np.ndarray:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -142,13 +143,29 @@ def classify_failures(nxt: TensorDictBase, worlds: torch.Tensor, lifted: torch.T
     return causes
 
 
-def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, sample=None) -> list[dict]:
+class TrialHook(Protocol):
+    """Something that acts on the env during trials (a disturbance) and adds to their records."""
+
+    def after_step(self, env: TransformedEnv, nxt: TensorDictBase) -> None:
+        """After every step, before its finished episodes are recorded (their worlds are
+        already reset)."""
+
+    def record(self, world: int) -> dict:
+        """Extra entries of the record of ``world``'s episode that just ended."""
+
+    def reset(self, done: torch.Tensor) -> None:
+        """The episodes of the worlds in ``done`` (bool [W]) ended."""
+
+
+def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, sample=None,
+               hook: TrialHook | None = None) -> list[dict]:
     """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order
-    (``sample``: action groups drawn from the policy instead, a diagnostic).
+    (``sample``: action groups drawn from the policy instead, a diagnostic; ``hook``: see
+    :class:`TrialHook`).
 
     With W worlds each world runs ceil(N / W) episodes; the first N to finish (by step,
     then world index) are the trials. One record per trial: world, end step, success,
-    cause, steps, end stage and peak stage (highest of any robot)."""
+    cause, steps, end stage and peak stage (highest of any robot), and the hook's entries."""
     groups = check_groups(sample)
     n_worlds = env.base_env.num_worlds
     per_world = math.ceil(trials / n_worlds)
@@ -163,6 +180,8 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
             td = _act(actor, td, groups)
             out, td = env.step_and_maybe_reset(td)
             nxt, step = out["next"], step + 1
+            if hook is not None:
+                hook.after_step(env, nxt)
             if "object" in nxt["agents"].keys():  # pick-and-place: the box's lift
                 lifted |= nxt["agents", "stage_conditions"][..., LIFTED].any(-1)
             stage = nxt[STAGE].reshape(n_worlds, -1).max(-1).values
@@ -173,11 +192,13 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
                 for w, cause in zip(worlds.tolist(), classify_failures(nxt, worlds, lifted)):
                     records.append({"world": w, "end_step": step, "success": cause is None, "cause": cause,
                                     "steps": int(nxt["step_count"][w, 0]), "end_stage": int(stage[w]),
-                                    "peak_stage": int(peak[w])})
+                                    "peak_stage": int(peak[w]), **(hook.record(w) if hook is not None else {})})
                 count[worlds] += 1
                 bar.update(min(len(worlds), max(0, trials - bar.n)))
             lifted &= ~done
             peak[done] = 0
+            if hook is not None:
+                hook.reset(done)
     bar.close()
     records.sort(key=lambda r: (r["end_step"], r["world"]))
     return records[:trials]

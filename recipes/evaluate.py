@@ -43,8 +43,23 @@ def table_md(result: dict, method: str) -> str:
     )
 
 
+def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
+    """A pipeline folder's finished phases (up to ``cfg.phase`` if set) and that phase's
+    checkpoint; ``[]`` and ``None`` for anything else."""
+    phases = load_state(Path(str(cfg.checkpoint)))
+    if cfg.phase is None:
+        return phases, None
+    names = [p["name"] for p in phases]
+    if cfg.phase not in names:
+        raise ValueError(f"phase={cfg.phase!r} is not a finished phase of checkpoint={cfg.checkpoint!r} "
+                         f"(finished: {names}; a pipeline folder is needed)")
+    phases = phases[: names.index(cfg.phase) + 1]
+    return phases, Path(phases[-1]["checkpoint"])
+
+
 def evaluate(cfg: DictConfig) -> dict:
-    ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+    phases, ckpt_path = pipeline_phases(cfg)
+    ckpt_path = ckpt_path or resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
     t0 = time.monotonic()
     sample = check_groups(cfg.sample)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
@@ -65,8 +80,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "wall_s": time.monotonic() - t0, **provenance(),
     }
-    phases = load_state(Path(str(cfg.checkpoint)))  # a pipeline folder: every phase's cost
-    if phases:
+    if phases:  # a pipeline folder: every phase's cost
         first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
         result.update(from_scratch=first.get("warm_start") is None, phases=phases,
                       train_wall_s=sum(p["wall_s"] for p in phases), env_frames=sum(p["frames"] for p in phases))

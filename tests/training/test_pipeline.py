@@ -94,6 +94,12 @@ def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):
         f"out={tmp_path / 'eval.json'}", "progress=false"]))
     assert result["checkpoint"].endswith("1_far/checkpoint.pt") and result["from_scratch"]
     assert result["phases"] == out["phases"] and result["env_frames"] == 200
+    first = evaluate_recipe.evaluate(compose_cfg("evaluate", [
+        f"checkpoint={tmp_path / 'run'}", "phase=near", "trials=4", "env.num_worlds=4", "env.max_episode_steps=5",
+        f"out={tmp_path / 'eval_near.json'}", "progress=false"]))
+    assert first["checkpoint"].endswith("0_near/checkpoint.pt") and first["phases"] == out["phases"][:1]
+    with pytest.raises(ValueError, match="phase='mid' is not a finished phase"):
+        evaluate_recipe.evaluate(compose_cfg("evaluate", [f"checkpoint={tmp_path / 'run'}", "phase=mid"]))
 
 
 def test_start_curriculum_widens_with_success_resumes_and_gates_the_exit_rule(tmp_path):

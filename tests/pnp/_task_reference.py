@@ -13,28 +13,10 @@ from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
 from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
 from pnp.scene import GOAL_RADIUS
 from pnp.task import (
-    ACTION_HIGH,
-    ACTION_LOW,
-    FALL_HEIGHT,
-    FOOTPRINT_HALF,
-    GRASP_DIST,
-    LIFT_HEIGHT,
-    MAX_OBJ_HEIGHT,
-    OBS_BLOCKS,
-    ON_FLOOR,
-    READY_ALIGN,
-    READY_XY,
-    READY_Z,
-    Geometry,
-    PnPState,
+    ACTION_HIGH, ACTION_LOW, FALL_HEIGHT, FOOTPRINT_HALF, GRASP_DIST, LIFT_HEIGHT, MAX_OBJ_HEIGHT, OBS_BLOCKS, ON_FLOOR, READY_ALIGN,
+    READY_XY, READY_Z, Geometry, PnPState,
 )
-from pnp.terms import (
-    CONDITIONS,
-    REWARD_TABLE,
-    REWARD_TERMS,
-    STAGE_GATES,
-    STAGE_PROGRESS_TERM,
-)
+from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
 
 def yaw_rotation(yaw: torch.Tensor) -> torch.Tensor:

@@ -7,13 +7,7 @@ import pytest
 import torch
 
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
-from pnp.layout import (
-    MIN_ROBOT_BOX,
-    MIN_ROBOT_ROBOT,
-    SCALE_RANGE,
-    START_RANGE,
-    sample_layout,
-)
+from pnp.layout import MIN_ROBOT_BOX, MIN_ROBOT_ROBOT, SCALE_RANGE, START_RANGE, sample_layout
 from pnp.physics import BatchedPhysics
 from pnp.scene import build_scene
 

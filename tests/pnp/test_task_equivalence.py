@@ -7,9 +7,9 @@ import math
 
 import pytest
 import torch
-from pnp.envs.pnp_env import BLOCKS, PnPEnv
 
 import pnp.task as T
+from pnp.envs.pnp_env import BLOCKS, PnPEnv
 from pnp.scripted import ScriptedPnP
 from pnp.task import ACTION_HIGH, ACTION_LOW, PnPState
 from pnp.terms import CONDITIONS

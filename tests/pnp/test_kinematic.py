@@ -17,7 +17,6 @@ from tests.pnp._kinematic_helpers import _action, _layout, _to_world
 SPECS = ("full_observation_spec", "full_action_spec", "full_reward_spec", "full_done_spec")
 
 
-
 # --- contract ------------------------------------------------------------------------------
 @pytest.mark.parametrize("robots", [1, 2])
 def test_specs_equal_mujoco(robots):

@@ -91,6 +91,9 @@ class ModelConfig:
     # > 0, Bernoulli gripper only: a soft floor on its closing probability, so that grasps are
     # still tried where p would collapse to ~0 (models.GripperFloor).
     grasp_min_prob: float = 0.0
+    # > 0: a loss term, this times the mean squared distance of the gripper logit below the
+    # floor (models.GripperFloor.penalty), so that the floor's gradient does not vanish.
+    grasp_floor_coeff: float = 0.0
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
     obs_norm: bool = True  # running observation normalisation (in the checkpoint)
     # none: one actor and one critic (ours). The per-stage baselines (pnp.training.baselines)

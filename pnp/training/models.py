@@ -136,16 +136,25 @@ class GripperFloor(nn.Module):
     No ceiling: a held box is dropped by a single open draw.
     """
 
-    def __init__(self, extractor: nn.Module, index: int, min_prob: float):
+    def __init__(self, extractor: nn.Module, index: int, min_prob: float, coeff: float = 0.0):
         super().__init__()
-        self.extractor, self.index = extractor, index
+        self.extractor, self.index, self.coeff = extractor, index, float(coeff)
         self.lo = math.log(min_prob / (1.0 - min_prob))
+        self._excess: torch.Tensor | None = None
 
     def forward(self, x: torch.Tensor):
         loc, scale = self.extractor(x)
         loc = loc.clone()
-        loc[..., self.index] = self.lo + nn.functional.softplus(loc[..., self.index] - self.lo)
+        g = loc[..., self.index]
+        # Far below lo the floor's gradient vanishes and the logit drifts (-31 measured), so a
+        # grasped state could not raise its p: the penalty keeps the logit near the floor.
+        self._excess = torch.relu(self.lo - g) if self.coeff > 0 and torch.is_grad_enabled() else None
+        loc[..., self.index] = self.lo + nn.functional.softplus(g - self.lo)
         return loc, scale
+
+    def penalty(self) -> torch.Tensor | None:
+        """``coeff`` times the mean squared excess of the last forward's logits below the floor."""
+        return None if self._excess is None else self.coeff * self._excess.pow(2).mean()
 
 
 class PopArt(nn.Module):
@@ -227,7 +236,7 @@ def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
         if model_cfg.grasp_dist != "bernoulli" or model_cfg.grasp_min_prob >= 0.5:
             raise ValueError(f"model.grasp_min_prob={model_cfg.grasp_min_prob} needs 0 <= p < 0.5 and "
                              f"model.grasp_dist='bernoulli' (got {model_cfg.grasp_dist!r})")
-        head = GripperFloor(head, GRASP_ENTRY, model_cfg.grasp_min_prob)
+        head = GripperFloor(head, GRASP_ENTRY, model_cfg.grasp_min_prob, model_cfg.grasp_floor_coeff)
     return head
 
 

@@ -9,9 +9,10 @@ from tensordict import TensorDictBase
 
 from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.training.keys import ROLL_IN
+from pnp.training.models import GripperFloor
 
-LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "entropy", "explained_variance",
-          "clip_fraction", "kl_approx", "kl", "kl_teacher")
+LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "loss_grasp_floor", "entropy",
+          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_teacher")
 
 
 def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
@@ -40,11 +41,14 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     if ROLL_IN in flat.keys():  # roll-in actions were the mean, not drawn: no policy gradient from them
         flat = flat[~flat[ROLL_IN].reshape(-1)]
     params = [p for g in optim.param_groups for p in g["params"]]
+    floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
     sums, n = defaultdict(float), 0
     frames = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
     for _ in range(int(cfg.collect.num_epochs) if frames else 0):
         for idx in torch.randperm(frames).split(int(cfg.collect.minibatch_size)):
             out = loss(flat[idx])
+            for f in floors:  # from the actor forward the loss just made
+                out.set("loss_grasp_floor", f.penalty())
             adapt_lr(optim, float(out["kl"]), cfg.optim)  # the lr of this very step
             total = sum(v for k, v in out.items() if k.startswith("loss_"))  # MAPPO's, and any a subclass adds
             optim.zero_grad(set_to_none=True)

@@ -2,6 +2,8 @@
 folding constant inputs."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict.nn import InteractionType, set_interaction_type
@@ -56,6 +58,22 @@ def test_grasp_min_prob_floors_the_gripper_probability_only_from_below():
     assert torch.equal(loc[:, :GRASP_ENTRY], raw[:, :GRASP_ENTRY])  # other entries untouched
     with pytest.raises(ValueError, match="grasp_min_prob=0.05"):
         _actor_env("model.grasp_min_prob=0.05", "model.grasp_dist=tanh_normal")
+
+
+def test_grasp_floor_penalty_pulls_a_collapsed_logit_back_to_the_floor():
+    actor, env = _actor_env("model.grasp_min_prob=0.05", "model.grasp_floor_coeff=0.5")
+    head = actor.module[0].module.head
+    n = 2 * env.full_action_spec_unbatched[ACTION].shape[-1]
+    raw = torch.tensor([[-30.0, 0.0]]).T.expand(-1, n).clone().requires_grad_(True)
+    head(raw)
+    lo = math.log(0.05 / 0.95)
+    penalty = head.penalty()
+    assert torch.isclose(penalty, torch.tensor(0.5 * (lo + 30.0) ** 2 / 2))  # only the logit below the floor
+    penalty.backward()
+    assert raw.grad[0, GRASP_ENTRY] < -1.0 and raw.grad[1, GRASP_ENTRY] == 0.0  # descent raises it
+    with torch.no_grad():
+        head(raw)
+    assert head.penalty() is None  # rollouts leave nothing behind
 
 
 def test_centralised_critic_gives_each_agent_its_own_value():

@@ -13,7 +13,6 @@ those action groups are drawn from the policy's distribution, the rest stay at t
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
-from pnp.training.provenance import provenance
+from pnp.training.provenance import provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 
 
@@ -85,13 +84,9 @@ def evaluate(cfg: DictConfig) -> dict:
         result.update(from_scratch=first.get("warm_start") is None, phases=phases,
                       train_wall_s=sum(p["wall_s"] for p in phases), env_frames=sum(p["frames"] for p in phases))
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env.backend}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
     method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})" + (
         f", sampled {'+'.join(sample)}" if sample else "")
-    out.with_suffix(".md").write_text(table_md(result, method))
-    result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
-    return result
+    return write_result(result, out, table_md(result, method))
 
 
 @hydra.main(config_path="config", config_name="evaluate", version_base="1.3")

@@ -13,7 +13,6 @@ markdown table beside it (default: ``<run>/eval_student_<backend>.json|md``). Th
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.provenance import provenance
+from pnp.training.provenance import provenance, write_result
 from pnp.training.student import evaluate_views
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
@@ -66,11 +65,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "wall_s": time.monotonic() - t0, **provenance(),
     }
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_student_{env.backend}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(table_md(result))
-    result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
-    return result
+    return write_result(result, out, table_md(result))
 
 
 @hydra.main(config_path="config", config_name="evaluate_student", version_base="1.3")

@@ -1,11 +1,13 @@
 """Who, where and how a result was produced: stored beside every figure in results/."""
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 
 def commit() -> str:
@@ -36,3 +38,14 @@ def provenance(**extra) -> dict:
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         **extra,
     }
+
+
+def write_result(result: dict, out, markdown: str) -> dict:
+    """``result`` as JSON at ``out`` and ``markdown`` beside it (``.md``); returns ``result``
+    with both paths added."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    out.with_suffix(".md").write_text(markdown)
+    result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
+    return result

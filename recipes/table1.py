@@ -40,7 +40,7 @@ from pnp.training.baselines import use_baseline_schedule  # noqa: E402
 from pnp.training.collect import windowed_mean  # noqa: E402
 from pnp.training.config import register  # noqa: E402
 from pnp.training.models import make_models  # noqa: E402
-from pnp.training.pipeline import load_state, phase_dir, run_pipeline  # noqa: E402
+from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
@@ -68,7 +68,7 @@ def train_config(cfg: DictConfig, method: str, seed: int) -> DictConfig:
 def budget_frames(tcfg: DictConfig) -> int:
     if not tcfg.pipeline:
         raise ValueError("experiment=table1_<method> must declare a pipeline (its phases and frame budget)")
-    return sum(int(p.max_frames) for p in tcfg.pipeline)
+    return sum(int(p.max_frames) for _, p in pipeline_phases(tcfg))
 
 
 def run_rows(run: Path) -> list[dict]:

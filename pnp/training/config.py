@@ -191,7 +191,6 @@ class PhaseConfig:
     """One phase of a pipeline: overrides of this configuration (dotted keys), an exit
     rule measured in training, and a frame budget that ends it regardless."""
 
-    name: str = "phase"
     overrides: Dict[str, Any] = field(default_factory=dict)
     exit: Optional[ExitRule] = None
     max_frames: int = 10_000_000
@@ -219,9 +218,11 @@ class TrainConfig:
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
-    # Non-empty: run these phases back to back in out_dir, each warm-started from the last
-    # (pnp.training.pipeline); re-running the same command resumes where it stopped.
-    pipeline: List[PhaseConfig] = field(default_factory=list)
+    # Phases by name, declared once: an experiment that extends another reuses its phases.
+    phases: Dict[str, PhaseConfig] = field(default_factory=dict)
+    # Non-empty: run these phases (names in ``phases``) back to back in out_dir, each
+    # warm-started from the last (pnp.training.pipeline); rerunning resumes where it stopped.
+    pipeline: List[str] = field(default_factory=list)
 
 
 # Keys that old checkpoints hold and the schema dropped: each with the only value that

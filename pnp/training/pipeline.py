@@ -24,8 +24,9 @@ from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import windowed_mean
+from pnp.training.config import migrate
 from pnp.training.plots import plot_pipeline
-from pnp.training.trainer import Trainer
+from pnp.training.trainer import RESUME_OVERRIDES, Trainer
 
 STATE = "pipeline.json"
 
@@ -56,18 +57,27 @@ def phase_dir(out_dir: Path, index: int, name: str) -> Path:
     return out_dir / f"{index}_{name}"
 
 
+def pipeline_phases(cfg: DictConfig) -> list[tuple[str, DictConfig]]:
+    """``(name, phase)`` for each name in ``cfg.pipeline``, from ``cfg.phases``."""
+    unknown = [name for name in cfg.pipeline if name not in cfg.phases]
+    if unknown:
+        raise ValueError(f"pipeline names phases {unknown} that `phases` does not declare "
+                         f"(declared: {sorted(cfg.phases)})")
+    return [(name, cfg.phases[name]) for name in cfg.pipeline]
+
+
 def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig:
     """The run configuration of phase ``index``: ``cfg`` with the phase's overrides, its
     folder, its frame budget as iterations, and a warm start from ``source``."""
-    phase = cfg.pipeline[index]
+    name, phase = pipeline_phases(cfg)[index]
     pcfg = copy.deepcopy(cfg)  # keeps the schema: overrides are type-checked
-    pcfg.pipeline = []
+    pcfg.pipeline, pcfg.phases = [], {}
     for key, value in phase.overrides.items():
         if OmegaConf.select(pcfg, key, default="<missing>") == "<missing>":
-            raise ValueError(f"pipeline phase {phase.name!r} overrides unknown key {key!r}")
+            raise ValueError(f"pipeline phase {name!r} overrides unknown key {key!r}")
         # A mapping (e.g. env.start_curriculum) merges into its node; anything else replaces.
         OmegaConf.update(pcfg, key, value, merge=isinstance(value, (dict, DictConfig)))
-    pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, phase.name))
+    pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, name))
     pcfg.total_iterations = math.ceil(int(phase.max_frames) / int(pcfg.collect.frames_per_batch))
     pcfg.resume = False
     if (Path(pcfg.out_dir) / "checkpoint.pt").is_file():
@@ -83,8 +93,31 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
 
 def _phase_value(cfg: DictConfig, index: int, key: str):
     """``key`` as phase ``index`` sets it (or the pipeline's configuration)."""
-    overrides = cfg.pipeline[index].overrides
+    overrides = pipeline_phases(cfg)[index][1].overrides
     return overrides[key] if key in overrides else OmegaConf.select(cfg, key)
+
+
+# Keys of a phase's run configuration that may differ between its start and its resume.
+_RESUMABLE = set(RESUME_OVERRIDES) | {"out_dir", "resume", "warm_start", "warm_start_curriculum",
+                                      "warm_start_fold_constant"}
+
+
+def changed_since_start(pcfg: DictConfig, saved: dict) -> dict:
+    """``{key: (at start, now)}`` for every setting of a resumed phase that differs from its
+    checkpoint's: a resume runs the checkpoint's settings, so such an edit would be ignored."""
+    now, then = (_flat(OmegaConf.to_container(c, resolve=True)) for c in (pcfg, migrate(saved)))
+    return {k: (then.get(k), now.get(k)) for k in sorted(set(now) | set(then))
+            if k not in _RESUMABLE and then.get(k) != now.get(k)}
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 def load_state(out_dir: Path) -> list[dict]:
@@ -105,17 +138,18 @@ def run_pipeline(cfg: DictConfig) -> dict:
         raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    names = [p.name for p in cfg.pipeline]
+    phases = pipeline_phases(cfg)
+    names = [name for name, _ in phases]
     done = load_state(out_dir)
     if [d["name"] for d in done] != names[: len(done)]:
         raise ValueError(f"{out_dir / STATE} records phases {[d['name'] for d in done]}, this pipeline is {names}: "
                          "a different pipeline; use another out_dir")
-    for d, phase in zip(done, cfg.pipeline):
+    for d, (_, phase) in zip(done, phases):
         if d["overrides"] != OmegaConf.to_container(phase.overrides):
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
     budgets = [math.ceil(int(p.max_frames) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
-               for i, p in enumerate(cfg.pipeline)]
+               for i, (_, p) in enumerate(phases)]
     bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
     bar.update(sum(d["iterations"] for d in done))
     for index in range(len(done), len(names)):
@@ -123,10 +157,16 @@ def run_pipeline(cfg: DictConfig) -> dict:
         pcfg = phase_config(cfg, index, source)
         ckpt_path, rows = Path(pcfg.out_dir) / "checkpoint.pt", []
         if pcfg.resume:  # the rows up to its checkpoint: later ones are redone
-            counters = load_checkpoint(ckpt_path)["counters"]
+            ckpt = load_checkpoint(ckpt_path)
+            changed = changed_since_start(pcfg, ckpt["cfg"])
+            if changed:
+                raise ValueError(f"phase {names[index]!r} in {pcfg.out_dir} started with other settings "
+                                 f"(key: (then, now)) {changed}; a resume would run the old ones: restore them "
+                                 "or use another out_dir")
+            counters = ckpt["counters"]
             rows = [r for r in _read_rows(ckpt_path.parent / "metrics.jsonl") if r["iteration"] <= counters["iteration"]]
         widest = pcfg.env.start_curriculum.max_m if pcfg.env.start_curriculum.enabled else None
-        check = ExitCheck(cfg.pipeline[index].exit, rows, widest)
+        check = ExitCheck(phases[index][1].exit, rows, widest)
         bar.set_description(f"pipeline {index + 1}/{len(names)} {names[index]}")
         if check.met():  # it stopped by its rule after its last checkpoint, before the record
             by_rule = True
@@ -140,7 +180,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
                 bar.close()  # a signal or the wall-time limit: the same command resumes here
                 return {"out_dir": str(out_dir), "phases": done, "finished": False}
         done.append({
-            "name": names[index], "overrides": OmegaConf.to_container(cfg.pipeline[index].overrides),
+            "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
             "wall_s": float(counters["wall_s"]), "exit": "rule" if by_rule else "budget", "checkpoint": str(ckpt_path),
         })

@@ -76,7 +76,7 @@ def test_swept_values_reach_the_phase_the_sweep_runs(sweep, tmp_path):
                  for key, spec in sweep["parameters"].items()]
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("train", overrides=[*command, *overrides, f"out_dir={tmp_path}"])
-    assert len(cfg.pipeline) == 1 and cfg.pipeline[0].exit is None  # a fixed budget, no early exit
+    assert len(cfg.pipeline) == 1 and cfg.phases[cfg.pipeline[0]].exit is None  # a fixed budget, no early exit
     phase = phase_config(cfg, 0, None)
     for override in overrides:
         key, value = override.split("=", 1)

@@ -229,12 +229,12 @@ def test_thresholds_count_only_the_whole_task():
     assert r["execution_time"] == 8.0 / 12.0 and r["best_baseline"]["execution_time"] == "a"
 
 
-def _table1_cfg(tmp_path, methods, seeds, phases):
+def _table1_cfg(tmp_path, methods, seeds, *phases):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("table1", overrides=[f"methods={methods}", f"seeds={seeds}", f"runs_dir={tmp_path / 'runs'}",
                                            f"out={tmp_path / 'table1.json'}", "eval.trials=3", "eval.backend=kinematic",
                                            "eval.num_worlds=3", "eval.max_episode_steps=5", "curve_bins=4"])
-    cfg.train = [t for t in TINY if not t.startswith("backend=")] + ["baseline.bendikas.max_frames=40", phases]
+    cfg.train = [t for t in TINY if not t.startswith("backend=")] + ["baseline.bendikas.max_frames=40", *phases]
     return cfg
 
 
@@ -252,7 +252,7 @@ def _check_form(doc, methods, seeds):
 
 
 def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
-    cfg = _table1_cfg(tmp_path, "[dynamic,bendikas]", "[0]", "pipeline=[{name: kin, max_frames: 80}]")
+    cfg = _table1_cfg(tmp_path, "[dynamic,bendikas]", "[0]", "pipeline=[kin]", "++phases={kin: {max_frames: 80}}")
     doc = table1.run_table1(cfg)
     saved = json.loads((tmp_path / "table1.json").read_text())
     _check_form(saved, ["dynamic", "bendikas"], [0])
@@ -271,6 +271,6 @@ def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
 def test_table1_recipe_with_every_method_and_three_seeds(tmp_path):
     methods = ["dynamic", "liu_max", "liu_min", "bendikas", "erskine"]
     cfg = _table1_cfg(tmp_path, f"[{','.join(methods)}]", "[0,1,2]",
-                      "pipeline=[{name: explore, max_frames: 40, overrides: {loss.entropy_coeff: 0.02}},"
-                      "{name: sharp, max_frames: 40}]")
+                      "pipeline=[explore,sharp]",
+                      "++phases={explore: {max_frames: 40, overrides: {loss.entropy_coeff: 0.02}}, sharp: {max_frames: 40}}")
     _check_form(table1.run_table1(cfg), methods, [0, 1, 2])

@@ -10,6 +10,7 @@ from omegaconf import OmegaConf
 from pnp.box import DUAL_ROBOT_BOXES
 from pnp.terms import CONDITIONS
 from pnp.training.config import migrate
+from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy
 from pnp.training.tasks import kinematic_options, make_env, stage_graph
 from tests.training._tiny import ROOT, TINY, compose_cfg
@@ -21,13 +22,15 @@ QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/trai
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_every_experiment_composes_and_builds_its_env(name):
-    cfg = compose_cfg("train", [f"experiment={name}", "env.num_worlds=2"])
+    cfg = compose_cfg("train", [f"experiment={name}", "env.num_worlds=2", "out_dir=/nonexistent/run"])
     assert cfg.env.task in ("pnp", "ee_tracking")
     kinematic_options(cfg.env)  # kinematic options only where the backend is kinematic
     if cfg.warm_start is not None:
         assert (ROOT / cfg.warm_start).is_file(), cfg.warm_start
     if cfg.env.backend == "kinematic":
         make_env(cfg.env, cfg.curriculum, 0).close()
+    for index in range(len(cfg.pipeline)):  # every phase's overrides name schema keys
+        kinematic_options(phase_config(cfg, index, None).env)
 
 
 def test_quoted_experiments_have_their_files():

@@ -16,8 +16,9 @@ sys.path.insert(0, str(ROOT / "recipes"))
 import evaluate as evaluate_recipe  # noqa: E402
 
 PHASES = [
-    "+pipeline=[{name: near, max_frames: 80, overrides: {env.start_range: [0.6, 1.5]}},"
-    "{name: far, max_frames: 120, overrides: {env.num_worlds: 8, collect.frames_per_batch: 40}}]",
+    "pipeline=[near,far]",
+    "++phases={near: {max_frames: 80, overrides: {env.start_range: [0.6, 1.5]}},"
+    "far: {max_frames: 120, overrides: {env.num_worlds: 8, collect.frames_per_batch: 40}}}",
 ]
 
 
@@ -59,9 +60,19 @@ def test_a_pipeline_resumed_mid_phase_ends_as_one_run_straight_through(tmp_path)
     assert [p["frames"] for p in straight["phases"]] == [p["frames"] for p in resumed["phases"]]
 
 
+def test_a_phase_edited_after_its_start_is_refused_on_resume(tmp_path):
+    cut = run_pipeline(_cfg(tmp_path / "run", "max_wall_hours=0.0"))
+    assert not cut["finished"]
+    # a resume runs the checkpoint's settings: the edit would be silently ignored
+    edited = _cfg(tmp_path / "run", "loss.clip_epsilon=0.1")
+    with pytest.raises(ValueError, match=r"phase 'near' .* started with other settings .*'loss.clip_epsilon': \(0.2, 0.1\)"):
+        run_pipeline(edited)
+    assert run_pipeline(_cfg(tmp_path / "run", "max_wall_hours=1.0"))["finished"]  # run-time keys may change
+
+
 def test_exit_rule_ends_a_phase_and_is_recorded(tmp_path):
-    rule = "+pipeline=[{name: near, max_frames: 80, exit: {metric: frames, min: 40, window: 1}}]"  # met at once
-    out = run_pipeline(compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", rule]))
+    rule = "++phases={near: {max_frames: 80, exit: {metric: frames, min: 40, window: 1}}}"  # met at once
+    out = run_pipeline(compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "pipeline=[near]", rule]))
     assert out["phases"][0]["exit"] == "rule" and out["phases"][0]["iterations"] == 1
 
 
@@ -75,14 +86,17 @@ def test_exit_check_weights_by_episodes_and_names_unknown_metrics():
 
 
 def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
-    bad = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'x'}", "+pipeline=[{name: a, overrides: {env.gravity: 1}}]"])
+    bad = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'x'}", "pipeline=[a]", "++phases={a: {overrides: {env.gravity: 1}}}"])
     with pytest.raises(ValueError, match="'env.gravity'"):
         run_pipeline(bad)
+    undeclared = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'x'}", "pipeline=[a,b]", "++phases={a: {}}"])
+    with pytest.raises(ValueError, match=r"phases \['b'\] that `phases` does not declare"):
+        run_pipeline(undeclared)
     run_pipeline(_cfg(tmp_path / "run"))
-    other = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "+pipeline=[{name: other, max_frames: 40}]"])
+    other = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "pipeline=[other]", "++phases={other: {max_frames: 40}}"])
     with pytest.raises(ValueError, match="a different pipeline"):
         run_pipeline(other)
-    changed = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", PHASES[0].replace("[0.6, 1.5]", "[0.6, 2.0]")])
+    changed = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", PHASES[0], PHASES[1].replace("[0.6, 1.5]", "[0.6, 2.0]")])
     with pytest.raises(ValueError, match="finished phase 'near' ran with overrides"):
         run_pipeline(changed)
 

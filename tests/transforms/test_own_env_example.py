@@ -1,4 +1,4 @@
-"""Runs the code of the README section on the curriculum, from its markdown source."""
+"""Runs the code of docs/own_env.md (the curriculum in your own env), from its markdown source."""
 from __future__ import annotations
 
 import re
@@ -8,13 +8,13 @@ import torch
 
 import pnp.transforms  # noqa: F401  # pay the torchrl import at collection, not in the test
 
-README = Path(__file__).resolve().parents[2] / "README.md"
-TITLE = "## Use the curriculum in your own TorchRL env"
+README = Path(__file__).resolve().parents[2] / "docs" / "own_env.md"
+TITLE = "# Use the curriculum in your own TorchRL env"
 
 
 def section(text: str) -> str:
     start = text.index(TITLE)
-    end = text.find("\n## ", start + len(TITLE))
+    end = text.find("\n# ", start + len(TITLE))
     return text[start : end if end >= 0 else None]
 
 

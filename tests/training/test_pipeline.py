@@ -134,3 +134,18 @@ def test_start_curriculum_widens_with_success_resumes_and_gates_the_exit_rule(tm
     with pytest.raises(ValueError, match="max_m=1.0"):
         tiny_train(tmp_path / "bad", "total_iterations=1", "env.start_curriculum={enabled: true, max_m: 1.0}",
                    "env.start_range=[0.6,1.5]")
+
+
+@pytest.mark.slow
+def test_the_dual_pipeline_runs_through_every_phase(tmp_path):
+    """One robot to two, kinematic to MuJoCo: warm starts, folding and rho resizing in one go."""
+    cfg = compose_cfg("train", [*[t for t in TINY if not t.startswith("backend=")], "experiment=dual_pnp_pipeline",
+                                f"out_dir={tmp_path / 'run'}", "env.nthread=1"])
+    for name in cfg.pipeline:
+        cfg.phases[name].max_frames = 40
+    for key, value in {"env.num_worlds": 4, "collect.frames_per_batch": 40, "collect.minibatch_size": 20}.items():
+        cfg.phases.pair_mujoco.overrides[key] = value
+    out = run_pipeline(cfg)
+    assert out["finished"] and [p["name"] for p in out["phases"]] == list(cfg.pipeline)
+    last = load_checkpoint(tmp_path / "run" / "5_pair_mujoco" / "checkpoint.pt")
+    assert last["cfg"]["env"]["num_robots"] == 2 and last["cfg"]["env"]["backend"] == "mujoco"

@@ -7,10 +7,23 @@ ANYbotics ANYmal D and DynaArm data sheets, Robotiq 2F-140 manual). Numbers mark
 With the ideal low-level executor (``pnp.executor``) the trunk rides on actuated
 planar joints (x, y, yaw) at the standing height and the legs are rigid geometry,
 shown in the standing pose; they collide with the box but not with the floor.
+
+``legs="actuated"`` is the learned low level's robot: a free-floating trunk on 12 servoed
+leg joints, each leg HAA (about x) -> HFE (about y) -> KFE (about y). Joints are built in
+the standing pose with ``ref`` set to it, so the compiled ``qpos0`` is the stand while an
+angle still reads 0 with the leg straight. Each servo is MuJoCo's ``<position>`` written
+as a ``general`` actuator whose target is an offset from the stand: ``ctrl = 0`` holds
+the stand, and a policy's action maps to ``ctrl = scale * action`` as in legged_gym
+(``target = default + scale * action``). Only the feet touch the floor (as MuJoCo
+Playground's Go1); trunk and leg links touch the box and the other robot's trunk and
+legs, never each other within one robot (``<exclude>`` pairs). The arm is the same in
+both variants.
 """
 from __future__ import annotations
 
 from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
+
+import itertools
 
 import numpy as np
 from dm_control import composer, mjcf
@@ -55,26 +68,88 @@ FINGER_KP = 5000.0  # N/m, ours: ~75 N on a 30 mm bar
 # Contact groups: floor 1, robot 2, box 4 (box collides with both; robot not with floor).
 ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 4
 
+# --- Actuated legs (legs="actuated") ---
+LEG_VARIANTS = ("rigid", "actuated")
+LEGS = ("LF", "RF", "LH", "RH")
+LEG_JOINTS = tuple(f"{leg}_{j}" for leg in LEGS for j in ("HAA", "HFE", "KFE"))
+LEG_TORQUE = 80.0  # N m, ANYmal D (published, DESIGN.md "Robot model")
+# rad/s, ANYmal D (published). MuJoCo has no joint speed limit: the low level's env is to
+# read this constant (observation scale, termination); the model does not enforce it.
+LEG_SPEED = 8.5
+LEG_KP = 80.0  # N m/rad, legged_gym's ANYmal C (DESIGN.md "A learned low level")
+LEG_KD = 2.0  # N m s/rad, same source
+LEG_ARMATURE = 0.02  # kg m^2, ours: reflected drive inertia
+# Ranges of the left front leg (rad); right legs mirror HAA, hind legs HFE and KFE.
+HAA_RANGE = (-0.785, 0.611)  # published; mirrored for the right legs (ours)
+HFE_RANGE = (-1.2, 1.6)  # ours
+KFE_RANGE = (-2.6, 0.0)  # ours: folded to straight, no over-extension
+# Ours: the knee (and shank, foot) 0.10 m outboard of the HFE, as the thigh offset in
+# ANYbotics' public ANYmal C description (KFE at y 0.1003 m in the thigh frame; the D
+# data sheet gives no number). With the feet under the hips (0.23 m apart) the kp 80
+# stand held only by symmetry: a 0.2 m/s sideways push toppled it up to kp 150 (measured).
+KNEE_OUT = 0.10
+HIP_MASS, THIGH_MASS, SHANK_MASS, FOOT_MASS = 2.5, 4.0, 1.6, 0.2  # ours: LEG_MASS split over the links
+# Base height in the stand with the feet on the floor: 0.653 m, above the published 0.59 m
+# because our links are straight segments of the published lengths; the kp 80 servos sag
+# to about 0.633 m under the 61 kg robot (measured, tests/pnp/test_robot_legs.py).
+LEGGED_STAND_HEIGHT = float(THIGH_LEN * np.cos(HFE_STAND) + SHANK_LEN * np.cos(HFE_STAND + KFE_STAND) + FOOT_RADIUS)
+# Bit 8 marks the legged body: trunk and leg links touch the box (its conaffinity has 2)
+# and the other robot's body (8), feet also the floor (1); not the arm (2, 4), as before.
+LEG_CONTYPE, LEG_CONAFFINITY = 2 | 8, 4 | 8
+FOOT_CONAFFINITY = LEG_CONAFFINITY | 1
+
+
+def _leg_signs(leg: str) -> tuple[int, int]:
+    """(+1 front / -1 hind, +1 left / -1 right)."""
+    return (1 if leg[1] == "F" else -1), (1 if leg[0] == "L" else -1)
+
+
+def stand_pose() -> np.ndarray:
+    """Standing joint angles in ``LEG_JOINTS`` order: front knees point back, hind knees
+    forward (ANYmal's X configuration, as the rigid legs)."""
+    return np.array([q for leg in LEGS for q in (0.0, _leg_signs(leg)[0] * HFE_STAND, _leg_signs(leg)[0] * KFE_STAND)])
+
+
+def leg_ranges() -> np.ndarray:
+    """``[12, 2]`` joint ranges in ``LEG_JOINTS`` order."""
+    signs = [s for leg in LEGS for s in (_leg_signs(leg)[1], _leg_signs(leg)[0], _leg_signs(leg)[0])]
+    base = [HAA_RANGE, HFE_RANGE, KFE_RANGE] * len(LEGS)
+    return np.array([sorted((s * lo, s * hi)) for s, (lo, hi) in zip(signs, base)])
+
 
 class Quadruped(composer.Entity):
-    """One-armed quadruped; ``name`` prefixes every element (``robot0/arm_j1``)."""
+    """One-armed quadruped; ``name`` prefixes every element (``robot0/arm_j1``).
 
-    def _build(self, name: str = "robot", rgba=(0.85, 0.45, 0.1, 1)):
+    ``legs="rigid"`` (default): planar base joints, rigid legs. ``legs="actuated"``: 12
+    leg servos; attach it with ``robot.create_root_joints(parent.attach(robot))``."""
+
+    def _build(self, name: str = "robot", rgba=(0.85, 0.45, 0.1, 1), legs: str = "rigid"):
+        if legs not in LEG_VARIANTS:
+            raise ValueError(f"legs must be one of {LEG_VARIANTS}, got {legs!r}")
         self._mjcf_root = root = mjcf.RootElement(model=name)
         root.default.geom.set_attributes(
             contype=ROBOT_CONTYPE, conaffinity=ROBOT_CONAFFINITY, rgba=rgba, friction=(1.0, 0.005, 0.0001)
         )
-        base = root.worldbody.add("body", name="base", pos=(0, 0, STANDING_HEIGHT))
-        # Ideal executor: planar joints, velocity-actuated (see pnp.executor).
-        for jn, typ, axis in (("base_x", "slide", (1, 0, 0)), ("base_y", "slide", (0, 1, 0)), ("base_yaw", "hinge", (0, 0, 1))):
-            base.add("joint", name=jn, type=typ, axis=axis, damping=0.0, armature=1.0)
-        base.add("geom", name="trunk", type="box", size=TRUNK_HALF, mass=TRUNK_MASS)
+        self.legs = legs
+        rigid = legs == "rigid"
+        # Actuated: the free joint goes on the attachment frame (create_root_joints).
+        base = root.worldbody.add("body", name="base", pos=(0, 0, STANDING_HEIGHT if rigid else 0.0))
+        if rigid:
+            # Ideal executor: planar joints, velocity-actuated (see pnp.executor).
+            for jn, typ, axis in (("base_x", "slide", (1, 0, 0)), ("base_y", "slide", (0, 1, 0)), ("base_yaw", "hinge", (0, 0, 1))):
+                base.add("joint", name=jn, type=typ, axis=axis, damping=0.0, armature=1.0)
+        trunk = base.add("geom", name="trunk", type="box", size=TRUNK_HALF, mass=TRUNK_MASS)
         base.add("site", name="base_site", size=(0.01,), rgba=(0, 0, 0, 0))
-        self._add_legs(base)
+        if rigid:
+            self._add_legs(base)
+        else:
+            trunk.set_attributes(contype=LEG_CONTYPE, conaffinity=LEG_CONAFFINITY)
+            self._add_actuated_legs(root, base)
         self._add_arm(base)
-        for jn in ("base_x", "base_y"):
-            root.actuator.add("velocity", name=jn, joint=jn, kv=3000.0, forcerange=(-3000, 3000), forcelimited=True)
-        root.actuator.add("velocity", name="base_yaw", joint="base_yaw", kv=800.0, forcerange=(-800, 800), forcelimited=True)
+        if rigid:
+            for jn in ("base_x", "base_y"):
+                root.actuator.add("velocity", name=jn, joint=jn, kv=3000.0, forcerange=(-3000, 3000), forcelimited=True)
+            root.actuator.add("velocity", name="base_yaw", joint="base_yaw", kv=800.0, forcerange=(-800, 800), forcelimited=True)
         for jn, (lo, hi) in zip(ARM_JOINTS, ARM_RANGES):
             root.actuator.add(
                 "position", name=jn, joint=jn, kp=600.0, kv=40.0, ctrlrange=(lo, hi), ctrllimited=True,
@@ -87,6 +162,22 @@ class Quadruped(composer.Entity):
             )
         for side in ("l", "r"):
             root.sensor.add("touch", name=f"pad_{side}_touch", site=f"pad_{side}_site")
+
+    def create_root_joints(self, attachment_frame):
+        """Floating base of ``legs="actuated"``: ``frame = parent.attach(robot)`` then
+        ``robot.create_root_joints(frame)``. MuJoCo allows free joints only in top-level
+        bodies and the base sits under the attachment frame, so the free joint goes on the
+        frame (composer's convention: ``Arena.add_free_entity``, the walkers). The base is
+        at the frame's origin, so the joint's qpos is the trunk's pose; the frame starts
+        at the stand height, so ``qpos0`` stands on the floor."""
+        if self.legs != "actuated":
+            raise ValueError("only legs='actuated' floats; the rigid robot rides its own planar joints")
+        x, y, _ = attachment_frame.pos if attachment_frame.pos is not None else (0.0, 0.0, 0.0)
+        attachment_frame.pos = (x, y, LEGGED_STAND_HEIGHT)
+        # The arm's gravcomp is its controller's feed-forward: torques between trunk and arm
+        # links. MuJoCo would also put its share on the free joint, lifting the robot by
+        # the arm's weight (90 N); a joint with actuatorgravcomp and no actuator gets none.
+        attachment_frame.add("joint", name="base_free", type="free", actuatorgravcomp=True)
 
     def _add_legs(self, base):
         # Legs as rigid capsules in the standing pose: visual plus box collisions only.
@@ -102,6 +193,42 @@ class Quadruped(composer.Entity):
                 base.add("geom", name=f"{leg}_thigh", type="capsule", fromto=(*hip, *knee), size=(0.045,), mass=m)
                 base.add("geom", name=f"{leg}_shank", type="capsule", fromto=(*knee, *foot), size=(0.035,), mass=m)
                 base.add("geom", name=f"{leg}_foot", type="sphere", pos=foot, size=(FOOT_RADIUS,), mass=0.1)
+
+    def _add_actuated_legs(self, root, base):
+        geom = dict(contype=LEG_CONTYPE, conaffinity=LEG_CONAFFINITY)
+        joint = dict(type="hinge", limited=True, armature=LEG_ARMATURE)
+        bodies = [base]
+        poses, ranges = stand_pose().reshape(4, 3), leg_ranges().reshape(4, 3, 2)
+        for leg, (haa, hfe, kfe), (r_haa, r_hfe, r_kfe) in zip(LEGS, poses, ranges):
+            sx, sy = _leg_signs(leg)
+            knee = (0, sy * KNEE_OUT, -THIGH_LEN)
+            haa_pos = np.array([sx * HAA_POS[0], sy * HAA_POS[1], 0.0])
+            hfe_pos = np.array([sx * HFE_POS[0], sy * HFE_POS[1], 0.0]) - haa_pos
+            hip = base.add("body", name=f"{leg}_hip", pos=haa_pos)
+            hip.add("joint", name=f"{leg}_HAA", axis=(1, 0, 0), range=r_haa, ref=haa, **joint)
+            hip.add("geom", name=f"{leg}_hip", type="capsule", fromto=(0, 0, 0, *hfe_pos), size=(0.05,), mass=HIP_MASS, **geom)
+            # Bodies sit in the stand (rotated about y); ref makes that qpos0.
+            thigh = hip.add("body", name=f"{leg}_thigh", pos=hfe_pos, quat=(np.cos(hfe / 2), 0, np.sin(hfe / 2), 0))
+            thigh.add("joint", name=f"{leg}_HFE", axis=(0, 1, 0), range=r_hfe, ref=hfe, **joint)
+            thigh.add("geom", name=f"{leg}_thigh", type="capsule", fromto=(0, 0, 0, *knee), size=(0.045,), mass=THIGH_MASS, **geom)
+            shank = thigh.add("body", name=f"{leg}_shank", pos=knee, quat=(np.cos(kfe / 2), 0, np.sin(kfe / 2), 0))
+            shank.add("joint", name=f"{leg}_KFE", axis=(0, 1, 0), range=r_kfe, ref=kfe, **joint)
+            shank.add("geom", name=f"{leg}_shank", type="capsule", fromto=(0, 0, 0, 0, 0, -SHANK_LEN), size=(0.035,), mass=SHANK_MASS, **geom)
+            shank.add(
+                "geom", name=f"{leg}_foot", type="sphere", pos=(0, 0, -SHANK_LEN), size=(FOOT_RADIUS,), mass=FOOT_MASS,
+                contype=LEG_CONTYPE, conaffinity=FOOT_CONAFFINITY,
+            )
+            bodies += [hip, thigh, shank]
+        for jn, q0, (lo, hi) in zip(LEG_JOINTS, stand_pose(), leg_ranges()):
+            # <position kp kv> with the target offset by the stand: force = kp (ctrl + q0 - q) - kd qdot.
+            root.actuator.add(
+                "general", name=jn, joint=jn, gaintype="fixed", biastype="affine",
+                gainprm=(LEG_KP,), biasprm=(LEG_KP * q0, -LEG_KP, -LEG_KD), ctrlrange=(lo - q0, hi - q0),
+                ctrllimited=True, forcerange=(-LEG_TORQUE, LEG_TORQUE), forcelimited=True,
+            )
+        for a, b in itertools.combinations(bodies, 2):
+            if b.parent is not a:  # MuJoCo already drops parent-child pairs
+                root.contact.add("exclude", body1=a, body2=b)
 
     def _add_arm(self, base):
         r = ARM_RANGES

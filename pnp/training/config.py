@@ -94,6 +94,12 @@ class ModelConfig:
     # > 0: a loss term, this times the mean squared distance of the gripper logit below the
     # floor (models.GripperFloor.penalty), so that the floor's gradient does not vanish.
     grasp_floor_coeff: float = 0.0
+    # > 0 (needs grasp_min_prob): in the stages listed below, a soft ceiling on the closing
+    # probability at 1 - this, so that a held box is let go now and then where letting go is
+    # the task. Held boxes drove the logit to ~8 (p ~ 0.9998) and placed boxes sat for
+    # hundreds of iterations without a release (docs/pipeline_single.md, run 3).
+    grasp_open_min_prob: float = 0.0
+    grasp_open_stages: List[int] = field(default_factory=lambda: [5, 6])  # pick-and-place: S5 placed, S6 released
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
     obs_norm: bool = True  # running observation normalisation (in the checkpoint)
     # none: one actor and one critic (ours). The per-stage baselines (pnp.training.baselines)

@@ -16,7 +16,7 @@ from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, 
 from pnp.losses.distributions import TanhNormalGripper
 from pnp.task import ACTION_NAMES
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, VALUE
-from pnp.training.stage_ensemble import StageEnsemble
+from pnp.training.stage_ensemble import StageEnsemble, call_head
 
 GRASP_ENTRY = ACTION_NAMES.index("grasp")
 PER_STAGE = ("none", "bendikas", "erskine")  # model.per_stage
@@ -75,7 +75,7 @@ class AgentNet(nn.Module):
         x = torch.cat([self.obs_norm(obs), stage], -1)
         if self.centralised:  # [N, A, k] -> [N, A, A*k]: own block first
             x = torch.cat([x.roll(-k, dims=-2) for k in range(self.n_agents)], -1)
-        return self.head(self.mlp(x))
+        return call_head(self.head, self.mlp(x), stage)
 
 
 @torch.no_grad()
@@ -128,32 +128,48 @@ class ScaleBounds(nn.Module):
 class GripperFloor(nn.Module):
     """A soft floor under the Bernoulli gripper's logit, ``lo + softplus(logit - lo)`` with
     ``lo = logit(min_prob)``: p never falls below ``min_prob``, can still go to 1, and the
-    gradient never vanishes.
+    gradient never vanishes. Optionally, in ``open_stages`` only, a soft ceiling
+    ``hi - softplus(hi - .)`` with ``hi = logit(1 - open_min_prob)``.
 
     Why: the gripper explores by its Bernoulli draw alone. From random weights the
     ``grab_action`` term (1 - p while nothing is held) drove p to ~0 in S1 while the EE sat
     within grasp range half of the time, so closing was never tried (docs/pipeline_single.md).
-    No ceiling: a held box is dropped by a single open draw.
+    No ceiling elsewhere: a held box is dropped by a single open draw. Where the box has been
+    put down (S5) a held box drove p to ~0.9998 and opening was never tried either.
     """
 
-    def __init__(self, extractor: nn.Module, index: int, min_prob: float, coeff: float = 0.0):
+    takes_stage = True
+
+    def __init__(self, extractor: nn.Module, index: int, min_prob: float, coeff: float = 0.0,
+                 open_min_prob: float = 0.0, open_stages: tuple[int, ...] = ()):
         super().__init__()
         self.extractor, self.index, self.coeff = extractor, index, float(coeff)
         self.lo = math.log(min_prob / (1.0 - min_prob))
+        self.hi = math.log((1.0 - open_min_prob) / open_min_prob) if open_min_prob > 0 else None
+        self.open_stages = list(open_stages)
         self._excess: torch.Tensor | None = None
 
-    def forward(self, x: torch.Tensor):
+    def forward(self, x: torch.Tensor, stage: torch.Tensor | None = None):
         loc, scale = self.extractor(x)
         loc = loc.clone()
         g = loc[..., self.index]
-        # Far below lo the floor's gradient vanishes and the logit drifts (-31 measured), so a
-        # grasped state could not raise its p: the penalty keeps the logit near the floor.
-        self._excess = torch.relu(self.lo - g) if self.coeff > 0 and torch.is_grad_enabled() else None
-        loc[..., self.index] = self.lo + nn.functional.softplus(g - self.lo)
+        out = self.lo + nn.functional.softplus(g - self.lo)
+        excess = torch.relu(self.lo - g)
+        if self.hi is not None:
+            if stage is None:
+                raise ValueError("GripperFloor with open_min_prob > 0 needs the stage one-hot")
+            at = stage[..., self.open_stages].sum(-1) > 0
+            out = torch.where(at, self.hi - nn.functional.softplus(self.hi - out), out)
+            excess = excess + torch.where(at, torch.relu(g - self.hi), torch.zeros_like(g))
+        loc[..., self.index] = out
+        # Beyond a bound the soft bound's gradient vanishes and the logit drifts (-31 measured
+        # below the floor), so the penalty keeps the logit near its bounds.
+        self._excess = excess if self.coeff > 0 and torch.is_grad_enabled() else None
         return loc, scale
 
     def penalty(self) -> torch.Tensor | None:
-        """``coeff`` times the mean squared excess of the last forward's logits below the floor."""
+        """``coeff`` times the mean squared excess of the last forward's logits beyond their
+        bounds (below the floor; above the ceiling in ``open_stages``)."""
         return None if self._excess is None else self.coeff * self._excess.pow(2).mean()
 
 
@@ -236,7 +252,11 @@ def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
         if model_cfg.grasp_dist != "bernoulli" or model_cfg.grasp_min_prob >= 0.5:
             raise ValueError(f"model.grasp_min_prob={model_cfg.grasp_min_prob} needs 0 <= p < 0.5 and "
                              f"model.grasp_dist='bernoulli' (got {model_cfg.grasp_dist!r})")
-        head = GripperFloor(head, GRASP_ENTRY, model_cfg.grasp_min_prob, model_cfg.grasp_floor_coeff)
+        head = GripperFloor(head, GRASP_ENTRY, model_cfg.grasp_min_prob, model_cfg.grasp_floor_coeff,
+                            model_cfg.grasp_open_min_prob, tuple(model_cfg.grasp_open_stages))
+    if model_cfg.grasp_open_min_prob > 0 and not (model_cfg.grasp_min_prob > 0 and model_cfg.grasp_open_min_prob < 0.5):
+        raise ValueError(f"model.grasp_open_min_prob={model_cfg.grasp_open_min_prob} needs 0 < it < 0.5 and "
+                         f"model.grasp_min_prob > 0 (got {model_cfg.grasp_min_prob})")
     return head
 
 
@@ -252,6 +272,8 @@ def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Mo
         raise ValueError(f"model.per_stage must be one of {PER_STAGE}, got {model_cfg.per_stage!r}")
     per_stage = model_cfg.per_stage != "none"
     n_stages = env.observation_spec[STAGE_ONE_HOT].shape[-1]
+    if model_cfg.grasp_open_min_prob > 0 and not all(0 <= k < n_stages for k in model_cfg.grasp_open_stages):
+        raise ValueError(f"model.grasp_open_stages={list(model_cfg.grasp_open_stages)}: this task has stages 0..{n_stages - 1}")
     actor_head = _param_head(model_cfg, spec.shape[-1])
     if per_stage:
         actor_net = StageEnsemble([AgentNet(n_in, 2 * spec.shape[-1], n_agents, False, model_cfg.actor_cells)

@@ -14,6 +14,11 @@ import torch
 from torch import nn
 
 
+def call_head(head: nn.Module, y: torch.Tensor, stage: torch.Tensor):
+    """``head(y)``, or ``head(y, stage)`` for a head that reads the stage (``takes_stage``)."""
+    return head(y, stage) if getattr(head, "takes_stage", False) else head(y)
+
+
 class StageEnsemble(nn.Module):
     """Members ``[obs | stage one-hot] -> out``, selected per (world, robot) by ``route[stage]``.
 
@@ -43,9 +48,9 @@ class StageEnsemble(nn.Module):
     def forward(self, obs: torch.Tensor, stage: torch.Tensor):
         x = self.obs_norm(obs)
         if self.concat:
-            return self.head(torch.cat([m(x, stage) for m in self.members], -1))
+            return call_head(self.head, torch.cat([m(x, stage) for m in self.members], -1), stage)
         if bool((self.route == self.route[0]).all()):  # one member acts everywhere (Bendikas' sub-task)
-            return self.head(self.members[int(self.route[0])](x, stage))
+            return call_head(self.head, self.members[int(self.route[0])](x, stage), stage)
         # Rows by member: data-dependent shapes, so not under vmap (GAE's value pass calls
         # only the critics, which are concatenated or single-member).
         lead = x.shape[:-2]  # any batch dims before [A, n]
@@ -59,7 +64,7 @@ class StageEnsemble(nn.Module):
             if out is None:
                 out = y.new_zeros(*member.shape, y.shape[-1])
             out[rows] = torch.where(mine[rows].unsqueeze(-1), y, out[rows])
-        return self.head(out.reshape(*lead, *out.shape[-2:]))
+        return call_head(self.head, out.reshape(*lead, *out.shape[-2:]), stage.reshape(*lead, *stage.shape[-2:]))
 
     def route_all_to(self, member: int) -> None:
         """Every stage to one member (Bendikas' sub-task ``member``)."""

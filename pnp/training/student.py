@@ -136,7 +136,10 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
 
     The critic reads the clean observation and stage one-hot: an asymmetric critic is
     standard in teacher-student training and only used in training, so the deployed
-    student needs neither."""
+    student needs neither. The student reads no stage, so a teacher's stage-conditioned
+    gripper ceiling (``model.grasp_open_min_prob``) is dropped."""
+    model_cfg = model_cfg.copy()
+    model_cfg.grasp_open_min_prob = 0.0
     base = make_models(model_cfg, loss_cfg, env)
     n_agents, n_in = env.observation_spec[STUDENT_OBS].shape[-2:]
     n_act = env.full_action_spec_unbatched[ACTION].shape[-1]

@@ -76,6 +76,30 @@ def test_grasp_floor_penalty_pulls_a_collapsed_logit_back_to_the_floor():
     assert head.penalty() is None  # rollouts leave nothing behind
 
 
+def test_grasp_open_min_prob_caps_p_closed_only_in_the_release_stages():
+    actor, env = _actor_env("model.grasp_min_prob=0.05", "model.grasp_floor_coeff=0.5", "model.grasp_open_min_prob=0.05")
+    head = actor.module[0].module.head
+    n = 2 * env.full_action_spec_unbatched[ACTION].shape[-1]
+    raw = torch.full((4, n), 9.0, requires_grad=True)  # a held box's saturated logit
+    stage = torch.nn.functional.one_hot(torch.tensor([3, 4, 5, 6]), 7).float()
+    loc, _ = head(raw, stage)
+    p = torch.sigmoid(loc[:, GRASP_ENTRY])
+    assert torch.all(p[:2] > 0.9998) and torch.all(p[2:] <= 0.95)  # carried: uncapped; placed, released: capped
+    hi = math.log(0.95 / 0.05)
+    penalty = head.penalty()
+    assert torch.isclose(penalty, torch.tensor(0.5 * 2 * (9.0 - hi) ** 2 / 4))  # only the capped stages
+    penalty.backward()
+    assert torch.all(raw.grad[2:, GRASP_ENTRY] > 0) and torch.all(raw.grad[:2, GRASP_ENTRY] == 0)
+    # the actor passes each robot's stage through
+    td = env.reset()
+    td["agents", "stage_one_hot"] = torch.nn.functional.one_hot(torch.full(td["agents", "stage_one_hot"].shape[:-1], 5), 7).float()
+    assert torch.all(torch.sigmoid(actor(td)[LOC][..., GRASP_ENTRY]) <= 0.95)
+    for bad in (("model.grasp_open_min_prob=0.05",), ("model.grasp_min_prob=0.05", "model.grasp_open_min_prob=0.6"),
+                ("model.grasp_min_prob=0.05", "model.grasp_open_min_prob=0.05", "model.grasp_open_stages=[7]")):
+        with pytest.raises(ValueError, match="grasp_open"):
+            _actor_env(*bad)
+
+
 def test_centralised_critic_gives_each_agent_its_own_value():
     torch.manual_seed(0)
     net = AgentNet(5, 1, 2, True, [16])

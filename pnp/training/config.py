@@ -13,6 +13,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.layout import START_RANGE
+from pnp.task import ACTION_HIGH, ACTION_LOW
 
 
 @dataclass
@@ -37,8 +38,28 @@ class StartCurriculumConfig:
 
 
 @dataclass
+class LocomotionConfig:
+    """``env.task=locomotion``, the learned low level's leg policy (envs/locomotion_env.py):
+    legged_gym's ANYmal C flat task where it has a number, else ours."""
+
+    # vx, vy (m/s), yaw rate (rad/s): the HL policy's base-velocity bounds (pnp.task ACTION_LOW/HIGH).
+    command_low: List[float] = field(default_factory=lambda: list(ACTION_LOW[:3]))
+    command_high: List[float] = field(default_factory=lambda: list(ACTION_HIGH[:3]))
+    command_resample_s: float = 4.0  # legged_gym
+    # Ours: this share of resampled commands is zero; the HL policy stands still to grasp.
+    stand_share: float = 0.1
+    arm_resample_s: float = 2.0  # ours: a new random EE goal in the HL action's box this often
+    payload_mass: List[float] = field(default_factory=lambda: [0.0, 2.5])  # kg on the gripper (boxes 1.0-2.2)
+    push_interval_s: float = 15.0  # legged_gym; the first push of an episode at a random time
+    push_speed: List[float] = field(default_factory=lambda: [0.5, 1.0])  # m/s horizontal kick (legged_gym: up to 1)
+    # Ours: only the feet touch the floor, so a fall is read off the trunk (stands at ~0.63 m).
+    fall_height: float = 0.35  # m, trunk centre
+    fall_tilt: float = 1.0  # rad between the trunk's z axis and the vertical
+
+
+@dataclass
 class EnvConfig:
-    task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot)
+    task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot) | locomotion (the leg policy)
     backend: str = "mujoco"  # mujoco | kinematic
     num_worlds: int = 64
     num_robots: int = 1
@@ -53,6 +74,7 @@ class EnvConfig:
     handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
     grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
+    locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
 
 
 @dataclass

@@ -283,6 +283,9 @@ def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Mo
                              head=actor_head)
     dist_kwargs = {"low": spec.space.low, "high": spec.space.high}
     if model_cfg.grasp_dist == "bernoulli":
+        if spec.shape[-1] != len(ACTION_NAMES):
+            raise ValueError(f"model.grasp_dist='bernoulli' needs the pick-and-place action {ACTION_NAMES}; this task's "
+                             f"action has {spec.shape[-1]} entries (use model.grasp_dist=tanh_normal)")
         dist_cls, dist_kwargs["gripper_index"] = TanhNormalGripper, GRASP_ENTRY
     elif model_cfg.grasp_dist == "tanh_normal":
         dist_cls = TanhNormal

@@ -10,7 +10,9 @@ from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
 from pnp.ee_task import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
+from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.envs.pnp_env import PnPEnv
+from pnp.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
 from pnp.training.keys import STAGE_ONE_HOT
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
@@ -37,10 +39,22 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
                          nthread=env_cfg.nthread)
 
 
+def _locomotion_env(env_cfg: DictConfig, seed: int) -> EnvBase:
+    if env_cfg.backend != "mujoco":
+        raise ValueError(f"env.task=locomotion simulates legs: it needs env.backend=mujoco, got {env_cfg.backend!r}")
+    if int(env_cfg.num_robots) != 1:
+        raise ValueError(f"env.task=locomotion has one robot, got env.num_robots={env_cfg.num_robots}")
+    kinematic_options(env_cfg)
+    steps = env_cfg.max_episode_steps
+    return LocomotionEnv(num_worlds=int(env_cfg.num_worlds), settings=env_cfg.locomotion, seed=int(seed),
+                         nthread=env_cfg.nthread, **({} if steps is None else {"max_episode_steps": int(steps)}))
+
+
 # env.task -> (stage graph, reward-schedule kwargs, env): what the trainer needs of a task.
 TASKS: dict[str, tuple[Callable[[], StageGraph], Callable[[], dict], Callable[[DictConfig, int], EnvBase]]] = {
     "pnp": (pnp_default_stage_graph, pnp_default_reward_config, _pnp_env),
     "ee_tracking": (ee_stage_graph, ee_reward_config, _ee_tracking_env),
+    "locomotion": (locomotion_stage_graph, locomotion_reward_config, _locomotion_env),
 }
 
 

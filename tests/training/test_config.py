@@ -12,7 +12,7 @@ from pnp.terms import CONDITIONS
 from pnp.training.config import migrate
 from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy
-from pnp.training.tasks import kinematic_options, make_env, stage_graph
+from pnp.training.tasks import TASKS, kinematic_options, make_env, stage_graph
 from tests.training._tiny import ROOT, TINY, compose_cfg
 
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "recipes" / "config" / "experiment").glob("*.yaml"))
@@ -23,7 +23,7 @@ QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/trai
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_every_experiment_composes_and_builds_its_env(name):
     cfg = compose_cfg("train", [f"experiment={name}", "env.num_worlds=2", "out_dir=/nonexistent/run"])
-    assert cfg.env.task in ("pnp", "ee_tracking")
+    assert cfg.env.task in TASKS
     kinematic_options(cfg.env)  # kinematic options only where the backend is kinematic
     if cfg.warm_start is not None:
         assert (ROOT / cfg.warm_start).is_file(), cfg.warm_start

@@ -66,7 +66,7 @@ class EnvConfig:
     kinematic: KinematicOptions = field(default_factory=KinematicOptions)  # all off on MuJoCo
     boxes: Optional[str] = None  # null: the robot count's boxes (paper); single | dual: those assets
     nthread: Optional[int] = 2
-    max_episode_steps: Optional[int] = None  # null: the paper's 45 s (450 steps)
+    max_episode_steps: Optional[int] = None  # null: the task env's own (pick-and-place: the paper's 45 s, 450 steps)
     start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
     start_curriculum: StartCurriculumConfig = field(default_factory=StartCurriculumConfig)
     # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.

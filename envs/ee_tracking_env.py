@@ -45,16 +45,10 @@ class EETrackingEnv(RobotEnvBase):
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
                  nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
                  track_rule: str = "gated", device="cpu"):
-        if num_worlds < 1:
-            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
-        if max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps!r}")
-        super().__init__(batch_size=torch.Size([num_worlds]), device=device)
-        self.num_worlds, self.num_robots = num_worlds, 1
+        self._init_worlds(num_worlds, 1, max_episode_steps, device)
         self.backend = self._make_backend(backend, nthread, SINGLE_ROBOT_BOXES[0])
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
-        self.max_steps = int(max_episode_steps)
         if track_rule not in TRACK_RULES:
             raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
         self.track_rule = track_rule  # see pnp.ee_task.TRACK_RULES

@@ -62,13 +62,7 @@ class LocomotionEnv(RobotEnvBase):
 
     def __init__(self, num_worlds: int, settings, seed: int = 0, nthread: int | None = None,
                  max_episode_steps: int = int(round(EPISODE_S / POLICY_DT)), device="cpu"):
-        if num_worlds < 1:
-            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
-        if max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps!r}")
-        super().__init__(batch_size=torch.Size([num_worlds]), device=device)
-        self.num_worlds, self.num_robots = num_worlds, 1
-        self.max_steps = int(max_episode_steps)
+        self._init_worlds(num_worlds, 1, max_episode_steps, device)
         self._read_settings(settings)
         self.model, self.idx = build_locomotion_scene()
         self.backend = LocomotionPhysics(self.model, num_worlds, nthread)  # RobotEnvBase's name for it
@@ -228,6 +222,7 @@ class LocomotionEnv(RobotEnvBase):
         self._push(((self._push_in <= 0) & live).nonzero().squeeze(-1))
         self._resample((((self._steps % self.command_steps) == 0) & live).nonzero().squeeze(-1), "command")
         self._resample((((self._steps % self.arm_steps) == 0) & live).nonzero().squeeze(-1), "arm")
+        # Read again: the push above is part of what the policy observes.
         out = self._observe(self._last_action, self._last_action, terms)
         out.set(("agents", "action_clipped"), clipped)
         out.update({"terminated": fell.unsqueeze(-1), "truncated": truncated.unsqueeze(-1),

@@ -79,6 +79,15 @@ class RobotEnvBase(EnvBase):
     batch_locked = True
     _STATE: tuple[str, ...] = ()
 
+    def _init_worlds(self, num_worlds: int, num_robots: int, max_episode_steps: int, device) -> None:
+        """Checks the batch sizes, then sets up the EnvBase over ``num_worlds`` worlds."""
+        if num_worlds < 1:
+            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
+        if max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps!r}")
+        EnvBase.__init__(self, batch_size=torch.Size([num_worlds]), device=device)
+        self.num_worlds, self.num_robots, self.max_steps = num_worlds, num_robots, int(max_episode_steps)
+
     def _make_backend(self, backend, nthread, box: BoxAsset, options: dict | None = None) -> Backend:
         """``options``: keyword arguments of the named backend's constructor."""
         if isinstance(backend, Backend):
@@ -165,8 +174,6 @@ class PnPEnv(RobotEnvBase):
                  handle_order: str = "identity", handle_claim: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
-        if num_worlds < 1:
-            raise ValueError(f"num_worlds must be >= 1, got {num_worlds!r}")
         if grasp_sampling not in ("threshold", "bernoulli"):
             raise ValueError(f"grasp_sampling must be 'threshold' or 'bernoulli', got {grasp_sampling!r}")
         if handle_order not in HANDLE_ORDERS:
@@ -175,12 +182,10 @@ class PnPEnv(RobotEnvBase):
         self.handle_order = handle_order
         # Each robot keeps the handle it was given at the episode start (pnp.task.update_claims).
         self.handle_claim = bool(handle_claim)
-        super().__init__(batch_size=torch.Size([num_worlds]), device=device)
-        self.num_worlds, self.num_robots = num_worlds, num_robots
+        self._init_worlds(num_worlds, num_robots, int(round(EPISODE_S / HL_DT)), device)
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
         self.backend = self._make_backend(backend, nthread, self.box_assets[0], backend_options)
-        self.max_steps = int(round(EPISODE_S / HL_DT))
         self._make_specs()
         N, R = num_worlds, num_robots
         self._goal = torch.zeros(N, 2)

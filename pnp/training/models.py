@@ -151,20 +151,23 @@ class GripperFloor(nn.Module):
 
     def forward(self, x: torch.Tensor, stage: torch.Tensor | None = None):
         loc, scale = self.extractor(x)
-        loc = loc.clone()
-        g = loc[..., self.index]
+        g = loc[..., self.index]  # the raw logit; ``loc`` is copied before the write below
         out = self.lo + nn.functional.softplus(g - self.lo)
-        excess = torch.relu(self.lo - g)
+        at = None
         if self.hi is not None:
             if stage is None:
                 raise ValueError("GripperFloor with open_min_prob > 0 needs the stage one-hot")
             at = stage[..., self.open_stages].sum(-1) > 0
             out = torch.where(at, self.hi - nn.functional.softplus(self.hi - out), out)
-            excess = excess + torch.where(at, torch.relu(g - self.hi), torch.zeros_like(g))
+        loc = loc.clone()
         loc[..., self.index] = out
         # Beyond a bound the soft bound's gradient vanishes and the logit drifts (-31 measured
-        # below the floor), so the penalty keeps the logit near its bounds.
-        self._excess = excess if self.coeff > 0 and torch.is_grad_enabled() else None
+        # below the floor), so the penalty keeps the logit near its bounds (losses only).
+        self._excess = None
+        if self.coeff > 0 and torch.is_grad_enabled():
+            self._excess = torch.relu(self.lo - g)
+            if at is not None:
+                self._excess = self._excess + torch.where(at, torch.relu(g - self.hi), torch.zeros_like(g))
         return loc, scale
 
     def penalty(self) -> torch.Tensor | None:

@@ -102,6 +102,8 @@ class RobotEnvBase(EnvBase):
 
     def _set_seed(self, seed: int | None):
         self._rng = torch.Generator().manual_seed(int(seed) if seed is not None else 0)
+        if hasattr(getattr(self, "backend", None), "seed"):  # a backend with its own draws
+            self.backend.seed(int(seed) if seed is not None else 0)
 
     @_torch_single_threaded
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

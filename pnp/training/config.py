@@ -22,6 +22,7 @@ class KinematicOptions:
 
     box_blocks_base: bool = False  # a base does not step into a box it does not hold
     grasp_holds: bool = False  # two robots: a closed gripper keeps its bar, its EE follows the grasp point
+    slip: bool = False  # one robot: a lifted box slips out at MuJoCo's measured rates
 
 
 @dataclass

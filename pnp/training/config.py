@@ -13,7 +13,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.layout import START_RANGE
-from pnp.task import ACTION_HIGH, ACTION_LOW
+from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
 
 
 @dataclass
@@ -23,6 +23,7 @@ class KinematicOptions:
     box_blocks_base: bool = False  # a base does not step into a box it does not hold
     grasp_holds: bool = False  # two robots: a closed gripper keeps its bar, its EE follows the grasp point
     slip: bool = False  # one robot: a lifted box slips out at MuJoCo's measured rates
+    grasp_dist: float = GRASP_DIST  # m, EE to bar within which closing fingers grasp (and keep it)
 
 
 @dataclass

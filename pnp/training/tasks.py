@@ -14,6 +14,7 @@ from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.envs.pnp_env import PnPEnv
 from pnp.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
+from pnp.training.config import KinematicOptions
 from pnp.training.keys import STAGE_ONE_HOT
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
 
@@ -63,11 +64,11 @@ def kinematic_options(env_cfg: DictConfig) -> dict | None:
     (they stand in for contacts MuJoCo simulates)."""
     if env_cfg.backend not in BACKENDS:
         raise ValueError(f"env.backend must be one of {BACKENDS}, got {env_cfg.backend!r}")
-    opts = {k: True for k, v in dict(env_cfg.kinematic or {}).items() if v}
+    opts = {k: v for k, v in dict(env_cfg.kinematic or {}).items() if v != getattr(KinematicOptions, k)}
     if env_cfg.backend != "kinematic":
         if opts:
             raise ValueError(f"env.kinematic options {sorted(opts)} apply to the kinematic backend only; this run "
-                             f"uses env.backend={env_cfg.backend!r} (switch them off: env.kinematic.<option>=false)")
+                             f"uses env.backend={env_cfg.backend!r} (leave them at their defaults)")
         return None
     return opts or None
 

@@ -60,6 +60,12 @@ def test_kinematic_options_are_refused_on_mujoco():
     cfg.env.backend = "mujoco"
     with pytest.raises(ValueError, match=r"\['grasp_holds'\] apply to the kinematic backend only"):
         kinematic_options(cfg.env)
+    # Non-boolean options count where they leave their default.
+    cfg = compose_cfg("train", ["backend=kinematic", "env.kinematic.grasp_dist=0.02"])
+    assert kinematic_options(cfg.env) == {"grasp_dist": 0.02}
+    cfg.env.backend = "mujoco"
+    with pytest.raises(ValueError, match=r"\['grasp_dist'\]"):
+        kinematic_options(cfg.env)
 
 
 def test_migrate_maps_old_keys_and_refuses_retired_ones_that_did_something():

@@ -91,7 +91,7 @@ class MujocoBackend(Backend):
         m, i = self.model, self.idx
         ids = worlds.cpu().numpy()
         qpos = np.tile(m.qpos0, (len(ids), 1))
-        qpos[:, i.base_qpos.reshape(-1)] = layout.base.reshape(len(ids), -1).double().numpy()
+        self._place_robots(qpos, layout.base.double().numpy())
         qpos[:, i.arm_qpos.reshape(-1)] = np.tile(ARM_DEFAULT, self.num_robots)
         qpos[:, i.finger_qpos.reshape(-1)] = FINGER_STROKE
         xyz = layout.box_xy_yaw.double().numpy()
@@ -110,6 +110,10 @@ class MujocoBackend(Backend):
         mask = torch.zeros(self.num_worlds, dtype=torch.bool)
         mask[worlds] = True
         self.executor.reset(mask, self._arm_q())
+
+    def _place_robots(self, qpos: np.ndarray, base: np.ndarray) -> None:
+        """Write the bases ``base`` [M, R, 3] (x, y, yaw) into the rows ``qpos`` [M, nq]."""
+        qpos[:, self.idx.base_qpos.reshape(-1)] = base.reshape(len(qpos), -1)
 
     def _arm_q(self):
         return torch.from_numpy(self.physics.qpos[:, self.idx.arm_qpos]).float()
@@ -163,12 +167,9 @@ class MujocoBackend(Backend):
         i = self.idx
         qpos = torch.from_numpy(self.physics.qpos).float()
         qvel = torch.from_numpy(self.physics.qvel).float()
-        base = qpos[:, i.base_qpos]
+        base, base_z, base_vel, origin, rot = self._bases(qpos, qvel)
         arm_q = qpos[:, i.arm_qpos]
         ee_b, ee_rb = self._kin.fk(arm_q)
-        rot = yaw_rotation(base[..., 2])
-        base_z = torch.full_like(base[..., 0], STANDING_HEIGHT)
-        origin = torch.cat([base[..., :2], base_z.unsqueeze(-1)], -1)
         b = i.box_qpos
         touch = torch.from_numpy(self.physics.sensordata[:, i.touch]) > 1e-3
         box_rot = quat_to_matrix(qpos[:, b + 3 : b + 7])
@@ -176,12 +177,20 @@ class MujocoBackend(Backend):
         # Free-joint angular velocity is in the body frame: rotate to world.
         box_vel = torch.cat([vel[:, :3], (box_rot @ vel[:, 3:].unsqueeze(-1)).squeeze(-1)], -1)
         return PnPState(
-            base=base, base_z=base_z, base_vel=qvel[:, i.base_qvel], arm_q=arm_q, arm_qd=qvel[:, i.arm_qvel],
+            base=base, base_z=base_z, base_vel=base_vel, arm_q=arm_q, arm_qd=qvel[:, i.arm_qvel],
             finger_q=qpos[:, i.finger_qpos], touch=touch,
             ee_pos=origin + (rot @ ee_b.unsqueeze(-1)).squeeze(-1), ee_rot=rot @ ee_rb,
             box_pos=qpos[:, b : b + 3], box_rot=box_rot, box_vel=box_vel, box_size=self.box_size,
             goal=goal, init_goal_dist=init_goal_dist, grasp_cmd=grasp_cmd,
         )
+
+    def _bases(self, qpos: torch.Tensor, qvel: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Per robot: (x, y, yaw) [N, R, 3], trunk height [N, R], world (vx, vy, yaw rate)
+        [N, R, 3], and the trunk frame the arm hangs from: origin [N, R, 3], rotation [N, R, 3, 3]."""
+        base = qpos[:, self.idx.base_qpos]
+        base_z = torch.full_like(base[..., 0], STANDING_HEIGHT)
+        origin = torch.cat([base[..., :2], base_z.unsqueeze(-1)], -1)
+        return base, base_z, qvel[:, self.idx.base_qvel], origin, yaw_rotation(base[..., 2])
 
     def close(self):
         self.physics.close()

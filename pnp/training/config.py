@@ -77,6 +77,10 @@ class EnvConfig:
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
     grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
+    # ideal: planar base, IK arm (pnp.executor). learned: legs walked by a locomotion policy
+    # (pnp.legged_backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
+    low_level: str = "ideal"
+    low_level_checkpoint: Optional[str] = None
 
 
 @dataclass

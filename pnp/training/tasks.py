@@ -16,6 +16,7 @@ from pnp.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
 from pnp.training.config import KinematicOptions
 from pnp.training.keys import STAGE_ONE_HOT
+from pnp.training.low_level import LOW_LEVELS, learned_backend
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
 
 BACKENDS = ("mujoco", "kinematic")
@@ -25,7 +26,13 @@ BOX_SETS = {None: None, "single": SINGLE_ROBOT_BOXES, "dual": DUAL_ROBOT_BOXES}
 def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
     if env_cfg.boxes not in BOX_SETS:
         raise ValueError(f"env.boxes must be null, 'single' or 'dual', got {env_cfg.boxes!r}")
-    return PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots), backend=env_cfg.backend,
+    if env_cfg.low_level not in LOW_LEVELS:
+        raise ValueError(f"env.low_level must be one of {LOW_LEVELS}, got {env_cfg.low_level!r}")
+    backend = env_cfg.backend
+    if env_cfg.low_level == "learned":
+        kinematic_options(env_cfg)  # none on MuJoCo
+        backend = learned_backend(env_cfg, BOX_SETS[env_cfg.boxes])
+    return PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots), backend=backend,
                   backend_options=kinematic_options(env_cfg), seed=int(seed), nthread=env_cfg.nthread,
                   start_range=tuple(env_cfg.start_range), grasp_sampling=env_cfg.grasp_sampling,
                   terminate_on_success=bool(env_cfg.terminate_on_success), handle_order=env_cfg.handle_order,
@@ -36,6 +43,7 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
     if int(env_cfg.num_robots) != 1:
         raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
     kinematic_options(env_cfg)  # refuses kinematic options on MuJoCo here too
+    _ideal_only(env_cfg)
     return EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=env_cfg.backend, seed=int(seed),
                          nthread=env_cfg.nthread)
 
@@ -46,6 +54,7 @@ def _locomotion_env(env_cfg: DictConfig, seed: int) -> EnvBase:
     if int(env_cfg.num_robots) != 1:
         raise ValueError(f"env.task=locomotion has one robot, got env.num_robots={env_cfg.num_robots}")
     kinematic_options(env_cfg)
+    _ideal_only(env_cfg)
     steps = env_cfg.max_episode_steps
     return LocomotionEnv(num_worlds=int(env_cfg.num_worlds), settings=env_cfg.locomotion, seed=int(seed),
                          nthread=env_cfg.nthread, **({} if steps is None else {"max_episode_steps": int(steps)}))
@@ -71,6 +80,11 @@ def kinematic_options(env_cfg: DictConfig) -> dict | None:
                              f"uses env.backend={env_cfg.backend!r} (leave them at their defaults)")
         return None
     return opts or None
+
+
+def _ideal_only(env_cfg: DictConfig) -> None:
+    if env_cfg.low_level != "ideal":
+        raise ValueError(f"env.low_level={env_cfg.low_level!r} applies to env.task=pnp only, not {env_cfg.task!r}")
 
 
 def _task(env_cfg: DictConfig) -> tuple:

@@ -1,0 +1,64 @@
+"""The learned low level in a pick-and-place env (``env.low_level=learned``): a locomotion
+policy from a ``task=locomotion`` checkpoint, driving the legs of ``pnp.legged_backend``."""
+from __future__ import annotations
+
+from omegaconf import DictConfig
+import torch
+from tensordict import TensorDict
+from tensordict.nn import InteractionType, set_interaction_type
+
+from pnp.box import BoxAsset, DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+from pnp.legged_backend import LeggedMujocoBackend, LowLevelPolicy
+from pnp.locomotion import LOCO_OBS_DIM
+from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
+from pnp.training.config import migrate
+from pnp.training.keys import ACTION, OBS, STAGE_ONE_HOT
+
+LOW_LEVELS = ("ideal", "learned")
+
+
+def load_locomotion_policy(checkpoint: str) -> LowLevelPolicy:
+    """The deterministic leg policy of a ``task=locomotion`` run folder or checkpoint file:
+    observations [M, LOCO_OBS_DIM] (raw; the checkpoint's normalisation applies) -> leg actions [M, 12]."""
+    from pnp.training.models import make_models  # the trainer's stack, loaded only when asked for
+    from pnp.training.tasks import make_env
+
+    path = resolve_checkpoint(checkpoint, "runs")
+    ckpt = load_checkpoint(path)
+    cfg = migrate(ckpt["cfg"])
+    if cfg.env.task != "locomotion":
+        raise ValueError(f"env.low_level_checkpoint {path} was trained on env.task={cfg.env.task!r}, not locomotion")
+    cfg.env.num_worlds, cfg.env.nthread = 1, 1  # only for the specs the models are built from
+    env = make_env(cfg.env, cfg.curriculum, 0)
+    try:
+        actor = make_models(cfg.model, cfg.loss, env).actor
+    finally:
+        env.close()
+    actor.load_state_dict(ckpt["actor"])
+    actor.eval()
+
+    @torch.no_grad()
+    def policy(obs: torch.Tensor) -> torch.Tensor:
+        if obs.ndim != 2 or obs.shape[-1] != LOCO_OBS_DIM:
+            raise ValueError(f"locomotion observations must be [M, {LOCO_OBS_DIM}], got {tuple(obs.shape)}")
+        m = obs.shape[0]
+        td = TensorDict(batch_size=[m])
+        td.set(OBS, obs.unsqueeze(1))
+        td.set(STAGE_ONE_HOT, torch.ones(m, 1, 1))  # the locomotion task's single stage
+        with set_interaction_type(InteractionType.DETERMINISTIC):
+            return actor(td).get(ACTION)[:, 0]
+
+    return policy
+
+
+def learned_backend(env_cfg: DictConfig, boxes: tuple[BoxAsset, ...] | None) -> LeggedMujocoBackend:
+    """The legged MuJoCo backend of ``env_cfg`` (``low_level=learned``), its legs walked by
+    ``env_cfg.low_level_checkpoint``'s policy."""
+    if env_cfg.backend != "mujoco":
+        raise ValueError(f"env.low_level=learned walks simulated legs: it needs env.backend=mujoco, got {env_cfg.backend!r}")
+    if not env_cfg.low_level_checkpoint:
+        raise ValueError("env.low_level=learned needs env.low_level_checkpoint: a task=locomotion run folder or checkpoint")
+    robots = int(env_cfg.num_robots)
+    boxes = boxes or (SINGLE_ROBOT_BOXES if robots == 1 else DUAL_ROBOT_BOXES)
+    return LeggedMujocoBackend(int(env_cfg.num_worlds), robots, boxes[0],
+                               load_locomotion_policy(str(env_cfg.low_level_checkpoint)), nthread=env_cfg.nthread)

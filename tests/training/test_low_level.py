@@ -1,0 +1,54 @@
+"""env.low_level=learned: a task=locomotion checkpoint walks the legs of the PnP env."""
+import pytest
+import torch
+
+from pnp.legged_backend import LeggedMujocoBackend
+from pnp.locomotion import LOCO_OBS_DIM
+from pnp.training.low_level import load_locomotion_policy
+from pnp.training.tasks import make_env
+from pnp.training.trainer import train
+from tests.training._tiny import TINY, compose_cfg
+
+MUJOCO_TINY = [o for o in TINY if not o.startswith("backend=")]
+
+
+@pytest.fixture(scope="module")
+def locomotion_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("loco") / "run"
+    train(compose_cfg("train", [*MUJOCO_TINY, "experiment=locomotion", "env.nthread=1", "total_iterations=1",
+                                f"out_dir={out}"]))
+    return out
+
+
+def test_a_locomotion_checkpoint_drives_the_pnp_legs(locomotion_run):
+    policy = load_locomotion_policy(str(locomotion_run))
+    act = policy(torch.zeros(3, LOCO_OBS_DIM))
+    assert act.shape == (3, 12) and torch.isfinite(act).all()
+    with pytest.raises(ValueError, match=rf"\[M, {LOCO_OBS_DIM}\]"):
+        policy(torch.zeros(3, 5))
+    cfg = compose_cfg("train", [*MUJOCO_TINY, "backend=mujoco", "env.nthread=1", "env.num_worlds=2",
+                                "env.low_level=learned", f"env.low_level_checkpoint={locomotion_run}"])
+    env = make_env(cfg.env, cfg.curriculum, seed=0)
+    assert isinstance(env.base_env.backend, LeggedMujocoBackend)
+    td = env.rollout(2, break_when_any_done=False)
+    assert td["next", "agents", "observation"].isfinite().all()
+    env.close()
+
+
+def test_wrong_low_level_settings_are_refused(locomotion_run, tmp_path):
+    def env_of(*extra):
+        cfg = compose_cfg("train", [*MUJOCO_TINY, "env.nthread=1", "env.num_worlds=1", *extra])
+        return make_env(cfg.env, cfg.curriculum, seed=0)
+
+    with pytest.raises(ValueError, match="env.low_level must be one of"):
+        env_of("backend=mujoco", "env.low_level=wheels")
+    with pytest.raises(ValueError, match="needs env.low_level_checkpoint"):
+        env_of("backend=mujoco", "env.low_level=learned")
+    with pytest.raises(ValueError, match="needs env.backend=mujoco"):
+        env_of("backend=kinematic", "env.low_level=learned", f"env.low_level_checkpoint={locomotion_run}")
+    with pytest.raises(ValueError, match="applies to env.task=pnp only"):
+        env_of("task=ee_tracking", "backend=mujoco", "env.low_level=learned")
+    pnp_run = tmp_path / "pnp"
+    train(compose_cfg("train", [*TINY, "total_iterations=1", f"out_dir={pnp_run}"]))
+    with pytest.raises(ValueError, match="trained on env.task='pnp', not locomotion"):
+        load_locomotion_policy(str(pnp_run))

@@ -36,7 +36,7 @@ from pnp.task import ACTION_NAMES
 from pnp.terms import CONDITIONS, REWARD_TERMS, STAGES
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
-from pnp.training.config import migrate
+from pnp.training.config import KinematicOptions, migrate
 from pnp.training.keys import ACTION, STAGE
 from pnp.training.models import ObsNorm, dist_from_params, fold_constant_inputs, make_models
 from pnp.training.tasks import make_env
@@ -74,8 +74,8 @@ def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> 
         if value is not None:
             OmegaConf.update(env, key, value, merge=False)
     if env.backend != "kinematic":
-        for key in env.kinematic:  # stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones
-            env.kinematic[key] = False
+        # Stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones.
+        env.kinematic = OmegaConf.structured(KinematicOptions)
     return env
 
 

@@ -5,6 +5,7 @@ import torch
 from pnp.legged_backend import LeggedMujocoBackend
 from pnp.locomotion import LOCO_OBS_DIM
 from pnp.training.low_level import load_locomotion_policy
+from pnp.training.rollout import load_policy, run_trials
 from pnp.training.tasks import make_env
 from pnp.training.trainer import train
 from tests.training._tiny import TINY, compose_cfg
@@ -17,6 +18,13 @@ def locomotion_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("loco") / "run"
     train(compose_cfg("train", [*MUJOCO_TINY, "experiment=locomotion", "env.nthread=1", "total_iterations=1",
                                 f"out_dir={out}"]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def pnp_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pnp") / "run"
+    train(compose_cfg("train", [*TINY, "total_iterations=1", f"out_dir={out}"]))
     return out
 
 
@@ -35,7 +43,16 @@ def test_a_locomotion_checkpoint_drives_the_pnp_legs(locomotion_run):
     env.close()
 
 
-def test_wrong_low_level_settings_are_refused(locomotion_run, tmp_path):
+def test_a_trained_high_level_is_evaluated_on_legs(locomotion_run, pnp_run):
+    """What recipes/evaluate.py does with env.low_level=learned."""
+    pol = load_policy(pnp_run / "checkpoint.pt", 2, 0, backend="mujoco", nthread=1, max_episode_steps=4, low_level="learned",
+                      low_level_checkpoint=str(locomotion_run))
+    assert isinstance(pol.env.base_env.backend, LeggedMujocoBackend)
+    records = run_trials(pol.env, pol.actor, 2)
+    assert len(records) == 2 and all(r["cause"] == "timeout" for r in records)
+
+
+def test_wrong_low_level_settings_are_refused(locomotion_run, pnp_run):
     def env_of(*extra):
         cfg = compose_cfg("train", [*MUJOCO_TINY, "env.nthread=1", "env.num_worlds=1", *extra])
         return make_env(cfg.env, cfg.curriculum, seed=0)
@@ -48,7 +65,5 @@ def test_wrong_low_level_settings_are_refused(locomotion_run, tmp_path):
         env_of("backend=kinematic", "env.low_level=learned", f"env.low_level_checkpoint={locomotion_run}")
     with pytest.raises(ValueError, match="applies to env.task=pnp only"):
         env_of("task=ee_tracking", "backend=mujoco", "env.low_level=learned")
-    pnp_run = tmp_path / "pnp"
-    train(compose_cfg("train", [*TINY, "total_iterations=1", f"out_dir={pnp_run}"]))
     with pytest.raises(ValueError, match="trained on env.task='pnp', not locomotion"):
         load_locomotion_policy(str(pnp_run))

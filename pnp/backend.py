@@ -75,11 +75,11 @@ class MujocoBackend(Backend):
     """Batched MuJoCo worlds built from the composer scene; physics at 200 Hz."""
 
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, executor: LowLevelExecutor | None = None,
-                 nthread: int | None = None, physics_dt: float = PHYSICS_DT):
+                 nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None):
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.mjcf_root, self.model, self.idx = build_scene(num_robots, box, physics_dt)
         self.physics = BatchedPhysics(self.model, num_worlds, self.idx.box_body, self.idx.box_geoms, nthread)
-        self.executor = executor or IdealExecutor(num_worlds, num_robots)
+        self.executor = executor or IdealExecutor(num_worlds, num_robots, finger_speed=finger_speed)
         self.nsub = int(round(HL_DT / physics_dt))
         self.box_size = torch.tensor(box.size, dtype=torch.float32).repeat(num_worlds, 1)
         self.box_mass = torch.full((num_worlds,), box.mass, dtype=torch.float32)
@@ -132,7 +132,7 @@ class MujocoBackend(Backend):
     def get_state(self):
         st = {"physics": torch.from_numpy(self.physics.state.copy()), "sensordata": torch.from_numpy(self.physics.sensordata.copy()),
               "box_size": self.box_size.clone(), "box_mass": self.box_mass.clone()}
-        for k in ("q_target", "q_ik", "yaw_ik"):
+        for k in ("q_target", "q_ik", "yaw_ik", "finger_target"):
             if hasattr(self.executor, k):
                 st[f"executor.{k}"] = getattr(self.executor, k).clone()
         return st

@@ -37,7 +37,15 @@ class LowLevelExecutor(ABC):
 
 
 class IdealExecutor(LowLevelExecutor):
-    def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 3):
+    """``finger_speed`` (m/s per finger, optional): finger targets ramp toward the command at
+    this speed. Without it they jump, and the servos drive the pads at up to ~7 m/s: in one
+    5 ms substep they pass a 30 mm bar's centre and end crossed inside it (docs/pipeline_single.md)."""
+
+    def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 3, finger_speed: float | None = None):
+        if finger_speed is not None and not finger_speed > 0:
+            raise ValueError(f"finger_speed must be > 0 (m/s) or None, got {finger_speed!r}")
+        self.finger_speed = finger_speed
+        self.finger_target = torch.full((num_worlds, num_robots), FINGER_STROKE)
         self.kin = ArmKinematics()
         self.ik_iters = ik_iters
         self.q_target = self.kin.q_default.expand(num_worlds, num_robots, 6).clone()
@@ -47,6 +55,7 @@ class IdealExecutor(LowLevelExecutor):
         self.yaw_ik = gripper_yaw(self.kin.fk(self.q_ik)[1])  # yaw the last IK aimed for
 
     def reset(self, worlds, arm_q):
+        self.finger_target[worlds] = FINGER_STROKE
         self.q_target[worlds] = arm_q[worlds]
         self.q_ik[worlds] = arm_q[worlds]
         self.yaw_ik[worlds] = gripper_yaw(self.kin.fk(arm_q[worlds])[1])
@@ -80,5 +89,11 @@ class IdealExecutor(LowLevelExecutor):
         arm = self.q_target.unsqueeze(1) + torch.clamp(delta, -step, step)
         self.q_target = arm[:, -1].clone()
         grip = torch.where(command[..., 7] > 0.5, 0.0, FINGER_STROKE)  # closed: squeeze to 0
-        fingers = grip[:, None, :, None].expand(N, nsub, R, 2)
+        if self.finger_speed is None:
+            fingers = grip[:, None, :, None].expand(N, nsub, R, 2)
+        else:
+            reach = (self.finger_speed * dt * torch.arange(1, nsub + 1, dtype=command.dtype))[None, :, None]
+            ramp = self.finger_target.unsqueeze(1) + torch.clamp((grip - self.finger_target).unsqueeze(1), -reach, reach)
+            self.finger_target = ramp[:, -1].clone()
+            fingers = ramp.unsqueeze(-1).expand(N, nsub, R, 2)
         return base, arm, fingers

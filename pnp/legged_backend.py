@@ -93,11 +93,11 @@ class LeggedMujocoBackend(MujocoBackend):
     """:class:`pnp.backend.MujocoBackend` on legs, the legs driven by ``policy`` (see module doc)."""
 
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, policy: LowLevelPolicy,
-                 nthread: int | None = None, physics_dt: float = PHYSICS_DT):
+                 nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None):
         self.num_worlds, self.num_robots = num_worlds, num_robots
         self.mjcf_root, self.model, self.idx = build_legged_scene(num_robots, box, physics_dt)
         self.physics = BatchedPhysics(self.model, num_worlds, self.idx.box_body, self.idx.box_geoms, nthread)
-        self.executor = IdealExecutor(num_worlds, num_robots)  # the arm's and fingers' targets
+        self.executor = IdealExecutor(num_worlds, num_robots, finger_speed=finger_speed)  # arm and finger targets
         self._kin = self.executor.kin
         self.policy = policy
         self.nsub = int(round(HL_DT / physics_dt))

@@ -61,4 +61,5 @@ def learned_backend(env_cfg: DictConfig, boxes: tuple[BoxAsset, ...] | None) -> 
     robots = int(env_cfg.num_robots)
     boxes = boxes or (SINGLE_ROBOT_BOXES if robots == 1 else DUAL_ROBOT_BOXES)
     return LeggedMujocoBackend(int(env_cfg.num_worlds), robots, boxes[0],
-                               load_locomotion_policy(str(env_cfg.low_level_checkpoint)), nthread=env_cfg.nthread)
+                               load_locomotion_policy(str(env_cfg.low_level_checkpoint)), nthread=env_cfg.nthread,
+                               finger_speed=env_cfg.finger_speed)

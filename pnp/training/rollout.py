@@ -76,6 +76,8 @@ def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> 
     if env.backend != "kinematic":
         # Stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones.
         env.kinematic = OmegaConf.structured(KinematicOptions)
+    else:
+        env.finger_speed = None  # MuJoCo's fingers only
     return env
 
 

@@ -28,12 +28,16 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
         raise ValueError(f"env.boxes must be null, 'single' or 'dual', got {env_cfg.boxes!r}")
     if env_cfg.low_level not in LOW_LEVELS:
         raise ValueError(f"env.low_level must be one of {LOW_LEVELS}, got {env_cfg.low_level!r}")
-    backend = env_cfg.backend
+    backend, options = env_cfg.backend, kinematic_options(env_cfg)
+    if env_cfg.finger_speed is not None:
+        if env_cfg.backend != "mujoco":
+            raise ValueError(f"env.finger_speed={env_cfg.finger_speed} applies to MuJoCo's fingers; the kinematic "
+                             "backend's move at pnp.kinematic_step.FINGER_SPEED")
+        options = {"finger_speed": float(env_cfg.finger_speed)}
     if env_cfg.low_level == "learned":
-        kinematic_options(env_cfg)  # none on MuJoCo
         backend = learned_backend(env_cfg, BOX_SETS[env_cfg.boxes])
     return PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots), backend=backend,
-                  backend_options=kinematic_options(env_cfg), seed=int(seed), nthread=env_cfg.nthread,
+                  backend_options=options, seed=int(seed), nthread=env_cfg.nthread,
                   start_range=tuple(env_cfg.start_range), grasp_sampling=env_cfg.grasp_sampling,
                   terminate_on_success=bool(env_cfg.terminate_on_success), handle_order=env_cfg.handle_order,
                   handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes])

@@ -60,6 +60,9 @@ def test_kinematic_options_are_refused_on_mujoco():
     cfg.env.backend = "mujoco"
     with pytest.raises(ValueError, match=r"\['grasp_holds'\] apply to the kinematic backend only"):
         kinematic_options(cfg.env)
+    cfg = compose_cfg("train", ["backend=kinematic", "env.finger_speed=1.0"])
+    with pytest.raises(ValueError, match="env.finger_speed=1.0 applies to MuJoCo"):
+        make_env(cfg.env, cfg.curriculum, 0)
     # Non-boolean options count where they leave their default.
     cfg = compose_cfg("train", ["backend=kinematic", "env.kinematic.grasp_dist=0.02"])
     assert kinematic_options(cfg.env) == {"grasp_dist": 0.02}

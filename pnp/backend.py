@@ -77,7 +77,7 @@ class MujocoBackend(Backend):
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, executor: LowLevelExecutor | None = None,
                  nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None):
         self.num_worlds, self.num_robots = num_worlds, num_robots
-        self.mjcf_root, self.model, self.idx = build_scene(num_robots, box, physics_dt)
+        self.mjcf_root, self.model, self.idx = self._build_scene(num_robots, box, physics_dt)
         self.physics = BatchedPhysics(self.model, num_worlds, self.idx.box_body, self.idx.box_geoms, nthread)
         self.executor = executor or IdealExecutor(num_worlds, num_robots, finger_speed=finger_speed)
         self.nsub = int(round(HL_DT / physics_dt))
@@ -85,7 +85,15 @@ class MujocoBackend(Backend):
         self.box_mass = torch.full((num_worlds,), box.mass, dtype=torch.float32)
         self._kin = getattr(self.executor, "kin", None) or ArmKinematics()
         i = self.idx
-        self._ctrl_cols = (torch.as_tensor(i.base_ctrl), torch.as_tensor(i.arm_ctrl), torch.as_tensor(i.finger_ctrl))
+        self._ctrl_cols = (torch.as_tensor(self._base_ctrl()), torch.as_tensor(i.arm_ctrl), torch.as_tensor(i.finger_ctrl))
+
+    @staticmethod
+    def _build_scene(num_robots: int, box: BoxAsset, physics_dt: float):
+        return build_scene(num_robots, box, physics_dt)
+
+    def _base_ctrl(self) -> np.ndarray:
+        """Actuator columns [R, k] that move each base (the planar joints' velocity servos)."""
+        return self.idx.base_ctrl
 
     def reset(self, worlds, layout):
         m, i = self.model, self.idx

@@ -168,11 +168,13 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     grasp = grasp & (bar_held < p.grasp_dist)
     # Closing axis against the bar axis: 1 - |cos(gripper yaw - box yaw)|.
     align = 1.0 - torch.addcmul(cg * ncu, sg, nsu).abs()
-    ee_v = ((ee_x - st["ee_x"]) * (1.0 / dt), (ee_y - st["ee_y"]) * (1.0 / dt), (ee_z - st["ee_z"]) * (1.0 / dt))
+    ee_v = {}  # the EE's world velocity over the step: only slip reads it (and keeps it)
     if p.slip and R == 1:
+        ee_v = {"ee_vx": (ee_x - st["ee_x"]) * (1.0 / dt), "ee_vy": (ee_y - st["ee_y"]) * (1.0 / dt),
+                "ee_vz": (ee_z - st["ee_z"]) * (1.0 / dt)}
         if uniform is None:
             raise ValueError("kinematic_step with slip needs uniform draws [N, R]")
-        dv = torch.sqrt(sum((a - st[k]) ** 2 for a, k in zip(ee_v, ("ee_vx", "ee_vy", "ee_vz"))))
+        dv = torch.sqrt(sum((v - st[k]) ** 2 for k, v in ee_v.items()))
         c0, c_bar, c_align, c_dv = SLIP_LOGIT
         hazard = torch.sigmoid(c0 + c_bar * bar_held + c_align * (1.0 - align) + c_dv * dv)
         # The box moved with the hand this step; from the next one it falls (airborne, no holder).
@@ -190,7 +192,7 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     bxr, byr = nx.unsqueeze(1) - ee_x, ny.unsqueeze(1) - ee_y
     out = dict(st)
     out.update(
-        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt), ee_vx=ee_v[0], ee_vy=ee_v[1], ee_vz=ee_v[2],
+        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt), **ee_v,
         base_vel=torch.stack([torch.addcmul(cy * vx, sy, vy, value=-1), torch.addcmul(sy * vx, cy, vy), wz], -1),
         finger=torch.where(grasp | new, HANDLE_RADIUS, f1), grasp=grasp | new, handle=torch.where(new, near_m, held_m),
         rel_x=torch.where(new, torch.addcmul(cg * bxr, sg, byr), rx),

@@ -23,12 +23,11 @@ import numpy as np
 import torch
 
 from pnp.backend import MujocoBackend, quat_to_matrix
-from pnp.box import BoxAsset, HandleBox
-from pnp.executor import LL_DT, IdealExecutor
+from pnp.box import BoxAsset
+from pnp.executor import LL_DT
 from pnp.locomotion import LOCO_OBS_DIM, STAND, base_readouts, joint_targets, observation
-from pnp.physics import BatchedPhysics
-from pnp.robot import ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT, Quadruped
-from pnp.scene import PHYSICS_DT, PnPArena
+from pnp.robot import ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
+from pnp.scene import PHYSICS_DT, compose_scene
 from pnp.task import HL_DT
 
 LowLevelPolicy = Callable[[torch.Tensor], torch.Tensor]
@@ -57,16 +56,7 @@ class LeggedSceneIndex:
 
 def build_legged_scene(num_robots: int, box: BoxAsset, physics_dt: float = PHYSICS_DT):
     """The PnP scene with ``Quadruped(legs="actuated")`` robots; returns ``(mjcf_root, model, index)``."""
-    if num_robots not in (1, 2):
-        raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
-    arena = PnPArena(physics_dt=physics_dt)
-    colours = ((0.85, 0.45, 0.1, 1), (0.85, 0.75, 0.2, 1))
-    for r in range(num_robots):
-        robot = Quadruped(name=f"robot{r}", rgba=colours[r], legs="actuated")
-        robot.create_root_joints(arena.attach(robot))
-    arena.attach(HandleBox(asset=box, name="box")).add("freejoint", name="box_free")
-    root = arena.mjcf_model
-    model = mujoco.MjModel.from_xml_string(root.to_xml_string(), assets=root.get_assets())
+    root, model = compose_scene(num_robots, box, physics_dt, legs="actuated")
     return root, model, _index(model, num_robots)
 
 
@@ -94,19 +84,19 @@ class LeggedMujocoBackend(MujocoBackend):
 
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, policy: LowLevelPolicy,
                  nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None):
-        self.num_worlds, self.num_robots = num_worlds, num_robots
-        self.mjcf_root, self.model, self.idx = build_legged_scene(num_robots, box, physics_dt)
-        self.physics = BatchedPhysics(self.model, num_worlds, self.idx.box_body, self.idx.box_geoms, nthread)
-        self.executor = IdealExecutor(num_worlds, num_robots, finger_speed=finger_speed)  # arm and finger targets
-        self._kin = self.executor.kin
+        super().__init__(num_worlds, num_robots, box, nthread=nthread, physics_dt=physics_dt, finger_speed=finger_speed)
         self.policy = policy
-        self.nsub = int(round(HL_DT / physics_dt))
         self.decimation = int(round(LL_DT / physics_dt))
         if self.nsub % self.decimation:
             raise ValueError(f"HL step {HL_DT} s is not a whole number of LL ticks of {LL_DT} s at dt={physics_dt}")
-        self.box_size = torch.tensor(box.size, dtype=torch.float32).repeat(num_worlds, 1)
-        self.box_mass = torch.full((num_worlds,), box.mass, dtype=torch.float32)
         self.last_leg_action = torch.zeros(num_worlds, num_robots, len(LEG_JOINTS))
+
+    @staticmethod
+    def _build_scene(num_robots, box, physics_dt):
+        return build_legged_scene(num_robots, box, physics_dt)
+
+    def _base_ctrl(self):
+        return self.idx.leg_ctrl  # the legs move the base
 
     def _place_robots(self, qpos, base):
         adr = self.idx.base_qpos
@@ -150,7 +140,8 @@ class LeggedMujocoBackend(MujocoBackend):
             leg_action = leg_action.clamp(-1.0, 1.0)
             self.last_leg_action = leg_action.detach().clone()
             sub = slice(tick * self.decimation, (tick + 1) * self.decimation)
-            ctrl[:, :, i.leg_ctrl.reshape(-1)] = (joint_targets(leg_action.reshape(N * R, -1)) - STAND).reshape(N, 1, -1).double().numpy()
+            target = joint_targets(leg_action.reshape(N * R, -1)) - STAND
+            ctrl[:, :, i.leg_ctrl.reshape(-1)] = target.reshape(N, 1, -1).double().numpy()
             ctrl[:, :, i.arm_ctrl.reshape(-1)] = arm[:, sub].reshape(N, self.decimation, -1).double().numpy()
             ctrl[:, :, i.finger_ctrl.reshape(-1)] = fingers[:, sub].reshape(N, self.decimation, -1).double().numpy()
             diverged |= self.physics.step(ctrl)

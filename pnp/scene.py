@@ -67,17 +67,25 @@ class SceneIndex:
     box_geoms: np.ndarray  # shell, handle bars, posts (resized per world)
 
 
-def build_scene(num_robots: int, box: BoxAsset, physics_dt: float = PHYSICS_DT):
-    """Compose the scene; returns ``(mjcf_root, mujoco.MjModel, SceneIndex)``."""
+def compose_scene(num_robots: int, box: BoxAsset, physics_dt: float = PHYSICS_DT, legs: str = "rigid"):
+    """Arena, robots (``Quadruped(legs=...)``; actuated ones float) and box; returns ``(mjcf_root, mujoco.MjModel)``."""
     if num_robots not in (1, 2):
         raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
     arena = PnPArena(physics_dt=physics_dt)
     colours = ((0.85, 0.45, 0.1, 1), (0.85, 0.75, 0.2, 1))
     for i in range(num_robots):
-        arena.attach(Quadruped(name=f"robot{i}", rgba=colours[i]))
+        robot = Quadruped(name=f"robot{i}", rgba=colours[i], legs=legs)
+        frame = arena.attach(robot)
+        if legs == "actuated":
+            robot.create_root_joints(frame)
     arena.attach(HandleBox(asset=box, name="box")).add("freejoint", name="box_free")
     root = arena.mjcf_model
-    model = mujoco.MjModel.from_xml_string(root.to_xml_string(), assets=root.get_assets())
+    return root, mujoco.MjModel.from_xml_string(root.to_xml_string(), assets=root.get_assets())
+
+
+def build_scene(num_robots: int, box: BoxAsset, physics_dt: float = PHYSICS_DT):
+    """Compose the scene; returns ``(mjcf_root, mujoco.MjModel, SceneIndex)``."""
+    root, model = compose_scene(num_robots, box, physics_dt)
     return root, model, index_scene(model, num_robots)
 
 

@@ -80,10 +80,10 @@ class EnvConfig:
     # ideal: planar base, IK arm (pnp.executor). learned: legs walked by a locomotion policy
     # (pnp.legged_backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
     low_level: str = "ideal"
+    low_level_checkpoint: Optional[str] = None
     # MuJoCo only, m/s per finger: finger targets ramp at this speed. null: they jump, and
     # the servos drive the pads through a handle bar in one substep (docs/pipeline_single.md).
     finger_speed: Optional[float] = None
-    low_level_checkpoint: Optional[str] = None
 
 
 @dataclass

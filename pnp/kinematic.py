@@ -132,7 +132,8 @@ class KinematicBackend(Backend):
 
     def __init__(self, num_worlds: int, num_robots: int, ee_tau: float = EE_TAU, finger_speed: float = FINGER_SPEED,
                  dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN,
-                 box_blocks_base: bool = False, grasp_holds: bool = False, slip: bool = False, seed: int = 0):
+                 box_blocks_base: bool = False, grasp_holds: bool = False, slip: bool = False, box_pushed: bool = False,
+                 seed: int = 0):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         self.num_worlds, self.num_robots = N, R = num_worlds, num_robots
@@ -140,7 +141,7 @@ class KinematicBackend(Backend):
                                       grasp_dist=float(grasp_dist), grasp_align=float(grasp_align),
                                       box_blocks_base=bool(box_blocks_base),
                                       grasp_holds=bool(grasp_holds) and num_robots == 2,
-                                      slip=bool(slip) and num_robots == 1)
+                                      slip=bool(slip) and num_robots == 1, box_pushed=bool(box_pushed))
         self._slip_rng = torch.Generator().manual_seed(int(seed))
         f = dict(dtype=torch.float32)
         lim = torch.tensor(ARM_RANGES, **f)

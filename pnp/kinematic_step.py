@@ -10,6 +10,7 @@ import torch
 
 from pnp.arm_closed_form import EE_TO_WRIST, arm_fk_columns, ik_wrist, wrap_angle, wrist_in_reach
 from pnp.box import HANDLE_RADIUS
+from pnp.kinematic_contact import clamp_push, leg_push, pad_push
 from pnp.robot import ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
 from pnp.task_geometry import FOOTPRINT_HALF, GRASP_DIST, rects_overlap
 from pnp.task_state import HL_DT
@@ -45,6 +46,7 @@ class KinematicParams:
     box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
     grasp_holds: bool = False  # True: two robots; a closed gripper keeps its bar, its EE follows the grasp point
     slip: bool = False  # True: one robot; a lifted box slips out at MuJoCo's measured rates (SLIP_LOGIT)
+    box_pushed: bool = False  # True: legs and pads shove a resting box (pnp.kinematic_contact)
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -137,6 +139,13 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     nx = torch.where(moves, cx, torch.where(airborne, torch.add(box_x, st["box_vx"], alpha=dt), box_x))
     ny = torch.where(moves, cy_, torch.where(airborne, torch.add(box_y, st["box_vy"], alpha=dt), box_y))
     nz = torch.maximum(torch.where(carried, cz, torch.where(airborne, z_fall, box_z)), hc)
+    if p.box_pushed:
+        # The resting box is shoved out of the footprints and the free grippers' pads.
+        leg_x, leg_y = leg_push(st, bx, by, yaw1)
+        pad_x, pad_y = pad_push(st, ee_x, ee_y, ee_z, cg, sg, st["finger"], ~grasp)
+        push_x, push_y = clamp_push(leg_x + pad_x, leg_y + pad_y)
+        resting = ~moves & ~airborne
+        nx, ny = torch.addcmul(nx, push_x, resting), torch.addcmul(ny, push_y, resting)
     nc, ns = torch.where(moves, cc, c0), torch.where(moves, cs, s0)
     lin_x, lin_y, lin_z = (nx - box_x) * (1.0 / dt), (ny - box_y) * (1.0 / dt), (nz - box_z) * (1.0 / dt)
     box_yaw = torch.where(moves, torch.atan2(cs, cc), st["box_yaw"])

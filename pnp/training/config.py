@@ -23,6 +23,7 @@ class KinematicOptions:
     box_blocks_base: bool = False  # a base does not step into a box it does not hold
     grasp_holds: bool = False  # two robots: a closed gripper keeps its bar, its EE follows the grasp point
     slip: bool = False  # one robot: a lifted box slips out at MuJoCo's measured rates
+    box_pushed: bool = False  # legs and free pads shove a resting box, as on MuJoCo
     grasp_dist: float = GRASP_DIST  # m, EE to bar within which closing fingers grasp (and keep it)
 
 

@@ -71,8 +71,8 @@ def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> 
     for key, value in env_overrides.items():
         if key not in env:
             raise ValueError(f"evaluation: unknown env override {key!r}; env keys are {sorted(env)}")
-        if value is not None:
-            OmegaConf.update(env, key, value, merge=False)
+        if value is not None:  # a mapping (kinematic options) changes only the keys it names
+            OmegaConf.update(env, key, value, merge=isinstance(value, (dict, DictConfig)))
     if env.backend != "kinematic":
         # Stand-ins for MuJoCo's contacts: a MuJoCo evaluation has the real ones.
         env.kinematic = OmegaConf.structured(KinematicOptions)

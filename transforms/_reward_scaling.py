@@ -365,6 +365,15 @@ class AdaptiveRewardScaling(_LazyBuffers, StageRewardSchedule):
         mean = self.rho.reshape(-1, self.rho.shape[-1]).mean(0)
         return {n: float(v) for n, v in zip(self.stage_term_names, mean)}
 
+    def enter_final(self) -> None:
+        """Put every slot in the final stage (``rho_j = mu_j`` for good), as if each had
+        ended ``final_after`` episodes in the last stage: for a run that continues a policy
+        which already reaches it, on new worlds."""
+        if not self.initialized:
+            raise RuntimeError("enter_final: the curriculum state is allocated at the env's first reset")
+        self.in_final = torch.ones_like(self.in_final)
+        self.final_streak = torch.full_like(self.final_streak, self.final_after)
+        self.rho = self._mu.to(self.rho).expand_as(self.rho).clone()
 
 
 SCHEDULES: dict[str, type[StageRewardSchedule]] = {

@@ -188,6 +188,11 @@ class Trainer:
                 self.env.transform.load_state_dict(adapt_curriculum(init["curriculum"], base.num_worlds,
                                                                     base.num_robots))
         self.carried = self.env.reset()
+        if cfg.curriculum.start_final:
+            schedule = schedule_of(self.env)
+            if not hasattr(schedule, "enter_final"):
+                raise ValueError(f"curriculum.start_final needs the dynamic schedule, not {cfg.curriculum.schedule!r}")
+            schedule.enter_final()
         if cfg.collect.desync_episodes:
             self.carried = desync_episodes(self.carried, cfg.env.max_episode_steps)
         if m.obs_norm is not None and not cfg.warm_start:

@@ -77,6 +77,17 @@ def test_warm_start_copies_weights_adam_and_optionally_the_curriculum(tmp_path):
     assert torch.equal(rho_a, rho_b) and not (rho_a == 0.1).all()
 
 
+def test_start_final_puts_every_warm_started_slot_in_the_final_stage(tmp_path):
+    tiny_train(tmp_path / "src", "total_iterations=2")
+    tiny_train(tmp_path / "dst", "total_iterations=0", f"warm_start={tmp_path / 'src'}", "warm_start_curriculum=true",
+               "curriculum.start_final=true")
+    cur = load_checkpoint(tmp_path / "dst" / "checkpoint.pt")["curriculum"]
+    assert cur["transforms.2.in_final"].all()
+    assert not load_checkpoint(tmp_path / "src" / "checkpoint.pt")["curriculum"]["transforms.2.in_final"].all()
+    with pytest.raises(ValueError, match="liu_max"):
+        tiny_train(tmp_path / "liu", "total_iterations=0", "curriculum.schedule=liu_max", "curriculum.start_final=true")
+
+
 def test_single_robot_checkpoint_warm_starts_the_dual_task(tmp_path):
     tiny_train(tmp_path / "one", "total_iterations=2")
     tiny_train(tmp_path / "two", "total_iterations=0", "task=dual_pnp", f"warm_start={tmp_path / 'one'}",

@@ -104,6 +104,17 @@ def test_completed_floor_keeps_a_share_of_mu_below_lambda_only():
         AdaptiveRewardScaling(**DYN, completed_floor=1.5)
 
 
+def test_enter_final_fixes_every_slot_at_mu():
+    t = AdaptiveRewardScaling(**DYN)
+    with pytest.raises(RuntimeError, match="first reset"):
+        t.enter_final()
+    step(t, [[0], [1]])
+    t.enter_final()
+    assert t.in_final.all() and t.rho.tolist() == [[[2.0, 8.0, 4.0]], [[2.0, 8.0, 4.0]]]
+    episode(t, [[0], [2]])  # later episodes change nothing, as in the paper's final stage
+    assert t.rho.tolist() == [[[2.0, 8.0, 4.0]], [[2.0, 8.0, 4.0]]]
+
+
 def test_rho_constant_within_an_episode():
     t = AdaptiveRewardScaling(**DYN)
     episode(t, [[1]])

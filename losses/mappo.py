@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.modules.value_norm import ValueNorm
 from torchrl.objectives import MAPPOLoss
 
-from .distributions import TanhNormalGripper
+from .distributions import TanhNormalGripper, bernoulli_kl
 
 __all__ = ["PopArtMAPPOLoss", "policy_kl"]
 
@@ -114,6 +114,10 @@ class PopArtMAPPOLoss(MAPPOLoss):
         out = super().forward(tensordict)
         current = self.__dict__.pop("_current_dist")
         out.set("kl", self.behaviour_kl(behaviour, current))
+        if isinstance(current, TanhNormalGripper):  # which part of the policy the KL (and so the lr) answers to
+            k = self.tensor_keys
+            old = self.actor_network.module[-1].get_dist(behaviour.select(k.loc, k.scale))
+            out.set("kl_gripper", bernoulli_kl(old.gripper.logits, current.gripper.logits).mean().detach())
         return self._extend(out, tensordict, current)
 
     def _extend(self, out: TensorDictBase, tensordict: TensorDictBase, current: D.Distribution) -> TensorDictBase:

@@ -12,7 +12,7 @@ from pnp.training.keys import ROLL_IN
 from pnp.training.models import GripperFloor
 
 LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "loss_grasp_floor", "entropy",
-          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_teacher")
+          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher")
 
 
 def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:

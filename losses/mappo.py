@@ -98,10 +98,10 @@ class PopArtMAPPOLoss(MAPPOLoss):
             self.popart.update(tensordict.get(self.tensor_keys.value_target))
 
     @torch.no_grad()
-    def behaviour_kl(self, tensordict: TensorDictBase, current: D.Distribution) -> torch.Tensor:
-        """Mean KL(behaviour || current) over the batch, ``current`` the policy's distribution on it."""
+    def behaviour_dist(self, tensordict: TensorDictBase) -> D.Distribution:
+        """The behaviour policy's distribution from the loc and scale the batch recorded."""
         k = self.tensor_keys
-        return policy_kl(self.actor_network.module[-1].get_dist(tensordict.select(k.loc, k.scale)), current).mean()
+        return self.actor_network.module[-1].get_dist(tensordict.select(k.loc, k.scale))
 
     def _log_weight(self, tensordict: TensorDictBase, adv_shape: torch.Size):
         out = super()._log_weight(tensordict, adv_shape)
@@ -113,10 +113,9 @@ class PopArtMAPPOLoss(MAPPOLoss):
         behaviour = tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale)
         out = super().forward(tensordict)
         current = self.__dict__.pop("_current_dist")
-        out.set("kl", self.behaviour_kl(behaviour, current))
+        old = self.behaviour_dist(behaviour)
+        out.set("kl", policy_kl(old, current).mean().detach())
         if isinstance(current, TanhNormalGripper):  # which part of the policy the KL (and so the lr) answers to
-            k = self.tensor_keys
-            old = self.actor_network.module[-1].get_dist(behaviour.select(k.loc, k.scale))
             out.set("kl_gripper", bernoulli_kl(old.gripper.logits, current.gripper.logits).mean().detach())
         return self._extend(out, tensordict, current)
 

@@ -1,7 +1,7 @@
 """Robot-box pushes of the kinematic model (``KinematicParams.box_pushed``): on MuJoCo a
 resting box is shoved by the legs and by the gripper's pads; the kinematic box otherwise
 moves only when held, so a policy trained there walks its legs and sweeps its pads into
-the box (measured: `docs/pipeline_single.md`, "Kinematic box pushes"). Both pushes move the
+the box (measured: `docs/transfer_gap.md`, "Where the contacts differ"). Both pushes move the
 box by the penetration, in the plane (no yaw, no tipping): a minimum-translation stand-in
 for contact, not a dynamics model."""
 from __future__ import annotations
@@ -76,6 +76,7 @@ def pad_push(st: dict[str, torch.Tensor], ee_x: torch.Tensor, ee_y: torch.Tensor
 
 
 def clamp_push(px: torch.Tensor, py: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The shift (px, py) [N] shortened to at most ``MAX_PUSH``."""
     n = torch.sqrt(px * px + py * py)
     k = (MAX_PUSH / n.clamp(min=MAX_PUSH))
     return px * k, py * k

@@ -222,11 +222,15 @@ class LoggerConfig:
 @dataclass
 class ExitRule:
     """A phase ends early once ``metric`` (a metrics.jsonl column), averaged over the last
-    ``window`` iterations weighted by their episode counts, reaches ``min``."""
+    ``window`` iterations weighted by their episode counts, reaches ``min`` (exit "rule"), or,
+    with ``plateau``, once that mean has not risen ``min_delta`` above its best of the phase
+    for ``plateau`` iterations (exit "plateau": more of the same batch and noise buys nothing)."""
 
     metric: str = "success_rate"
     min: float = 0.9
     window: int = 50
+    plateau: Optional[int] = None
+    min_delta: float = 0.02
 
 
 @dataclass

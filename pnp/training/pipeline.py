@@ -33,24 +33,45 @@ STATE = "pipeline.json"
 
 class ExitCheck:
     """``rule`` (an ``ExitRule``) over the metric rows of a phase, fed one row at a time.
-    With a start curriculum, the rule counts only once the starts are at their widest."""
+    With a start curriculum, the rule counts only once the starts are at their widest.
+    ``reason`` says which part ended it: "rule" (the threshold) or "plateau"."""
 
     def __init__(self, rule: DictConfig | None, rows: list[dict], widest: float | None = None):
-        self.rule, self.rows, self.widest = rule, list(rows), widest
+        self.rule, self.rows, self.widest, self.reason = rule, [], widest, None
+        self.best, self.best_at = -math.inf, 0  # the plateau's reference: best windowed value, and its row count
+        for row in rows:  # a resumed phase replays its rows, so the plateau counts from the same best
+            self.rows.append(row)
+            self._track()
 
     def __call__(self, row: dict) -> bool:
         self.rows.append(row)
+        self._track()
         return self.met()
+
+    def _value(self) -> float | None:
+        return windowed_mean(self.rows, self.rule.metric, int(self.rule.window)) if self.rule is not None else None
+
+    def _at_widest(self) -> bool:
+        return self.widest is None or self.rows[-1].get("start_range_high", self.widest) >= self.widest
+
+    def _track(self) -> None:  # the plateau counts only at the widest starts, as the rule does
+        value = self._value() if self._at_widest() else None
+        if value is not None and value > self.best + float(self.rule.min_delta):
+            self.best, self.best_at = value, len(self.rows)
 
     def met(self) -> bool:
         if self.rule is None or not self.rows:
             return False
         if self.rule.metric not in self.rows[-1]:
             raise KeyError(f"exit rule metric {self.rule.metric!r} is not logged; metrics are {sorted(self.rows[-1])}")
-        if self.widest is not None and self.rows[-1].get("start_range_high", self.widest) < self.widest:
+        if not self._at_widest():
             return False
-        value = windowed_mean(self.rows, self.rule.metric, int(self.rule.window))
-        return value is not None and value >= float(self.rule.min)
+        value = self._value()
+        if value is not None and value >= float(self.rule.min):
+            self.reason = "rule"
+        elif self.rule.plateau is not None and self.best_at and len(self.rows) - self.best_at >= int(self.rule.plateau):
+            self.reason = "plateau"
+        return self.reason is not None
 
 
 def phase_dir(out_dir: Path, index: int, name: str) -> Path:
@@ -182,7 +203,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
         done.append({
             "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
-            "wall_s": float(counters["wall_s"]), "exit": "rule" if by_rule else "budget", "checkpoint": str(ckpt_path),
+            "wall_s": float(counters["wall_s"]), "exit": check.reason if by_rule else "budget", "checkpoint": str(ckpt_path),
         })
         (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
         plot_pipeline(out_dir, done)

@@ -9,6 +9,7 @@ import torch
 from omegaconf import OmegaConf
 
 from pnp.training.checkpoint import load_checkpoint
+from pnp.training.config import ExitRule
 from pnp.training.pipeline import ExitCheck, run_pipeline
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
@@ -77,12 +78,25 @@ def test_exit_rule_ends_a_phase_and_is_recorded(tmp_path):
 
 
 def test_exit_check_weights_by_episodes_and_names_unknown_metrics():
-    rule = OmegaConf.create({"metric": "success_rate", "min": 0.5, "window": 2})
+    rule = OmegaConf.structured(ExitRule(metric="success_rate", min=0.5, window=2))
     check = ExitCheck(rule, [{"episodes": 1, "success_rate": 1.0}])
     assert not check({"episodes": 3, "success_rate": 0.2})  # (1 + 0.6) / 4 = 0.4
-    assert check({"episodes": 3, "success_rate": 0.8})  # (0.6 + 2.4) / 6 = 0.5
+    assert check({"episodes": 3, "success_rate": 0.8}) and check.reason == "rule"  # (0.6 + 2.4) / 6 = 0.5
     with pytest.raises(KeyError, match="'succes'"):
-        ExitCheck(OmegaConf.create({**rule, "metric": "succes"}), [{"episodes": 1}] * 2).met()
+        ExitCheck(OmegaConf.structured(ExitRule(metric="succes", window=2)), [{"episodes": 1}] * 2).met()
+
+
+def test_a_plateau_ends_a_phase_counted_from_its_best_window_also_after_a_resume():
+    rule = OmegaConf.structured(ExitRule(metric="success_rate", min=0.9, window=1, plateau=3, min_delta=0.05))
+    rows = [{"episodes": 1, "success_rate": v} for v in (0.1, 0.3, 0.34, 0.3, 0.32)]  # best 0.3 at row 2
+    check = ExitCheck(rule, rows[:2])
+    assert [check(r) for r in rows[2:]] == [False, False, True] and check.reason == "plateau"
+    resumed = ExitCheck(rule, rows)  # the same rows replayed: the same best, so it ends at once
+    assert resumed.met() and resumed.reason == "plateau"
+    rising = ExitCheck(rule, rows[:4])
+    assert not rising({"episodes": 1, "success_rate": 0.36}) and rising.best_at == 5  # 0.36 > 0.3 + 0.05: new best
+    no_plateau = OmegaConf.structured(ExitRule(metric="success_rate", min=0.9, window=1))
+    assert not ExitCheck(no_plateau, rows * 10).met()
 
 
 def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
@@ -128,7 +142,7 @@ def test_start_curriculum_widens_with_success_resumes_and_gates_the_exit_rule(tm
     tiny_train(tmp_path / "split", "total_iterations=3", "env.max_episode_steps=3", f"resume={tmp_path / 'split'}", *sc)
     split = [json.loads(line) for line in (tmp_path / "split" / "metrics.jsonl").read_text().splitlines()]
     assert [r["start_range_high"] for r in split] == [1.5, 2.0, 2.5]
-    rule = OmegaConf.create({"metric": "frames", "min": 0, "window": 1})
+    rule = OmegaConf.structured(ExitRule(metric="frames", min=0, window=1))
     assert not ExitCheck(rule, [{"frames": 1, "episodes": 1, "start_range_high": 2.0}], widest=2.5).met()
     assert ExitCheck(rule, [{"frames": 1, "episodes": 1, "start_range_high": 2.5}], widest=2.5).met()
     with pytest.raises(ValueError, match="max_m=1.0"):

@@ -39,6 +39,7 @@ class ExitCheck:
     def __init__(self, rule: DictConfig | None, rows: list[dict], widest: float | None = None):
         self.rule, self.rows, self.widest, self.reason = rule, [], widest, None
         self.best, self.best_at = -math.inf, 0  # the plateau's reference: best windowed value, and its row count
+        self.value = None  # the windowed metric at the last row (None before a window, or short of the widest starts)
         for row in rows:  # a resumed phase replays its rows, so the plateau counts from the same best
             self.rows.append(row)
             self._track()
@@ -48,16 +49,16 @@ class ExitCheck:
         self._track()
         return self.met()
 
-    def _value(self) -> float | None:
-        return windowed_mean(self.rows, self.rule.metric, int(self.rule.window)) if self.rule is not None else None
-
     def _at_widest(self) -> bool:
         return self.widest is None or self.rows[-1].get("start_range_high", self.widest) >= self.widest
 
     def _track(self) -> None:  # the plateau counts only at the widest starts, as the rule does
-        value = self._value() if self._at_widest() else None
-        if value is not None and value > self.best + float(self.rule.min_delta):
-            self.best, self.best_at = value, len(self.rows)
+        if self.rule is None or not self._at_widest():
+            self.value = None
+            return
+        self.value = windowed_mean(self.rows, self.rule.metric, int(self.rule.window))
+        if self.value is not None and self.value > self.best + float(self.rule.min_delta):
+            self.best, self.best_at = self.value, len(self.rows)
 
     def met(self) -> bool:
         if self.rule is None or not self.rows:
@@ -66,8 +67,7 @@ class ExitCheck:
             raise KeyError(f"exit rule metric {self.rule.metric!r} is not logged; metrics are {sorted(self.rows[-1])}")
         if not self._at_widest():
             return False
-        value = self._value()
-        if value is not None and value >= float(self.rule.min):
+        if self.value is not None and self.value >= float(self.rule.min):
             self.reason = "rule"
         elif self.rule.plateau is not None and self.best_at and len(self.rows) - self.best_at >= int(self.rule.plateau):
             self.reason = "plateau"

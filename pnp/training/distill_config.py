@@ -113,6 +113,7 @@ class DistillConfig:
     total_iterations: int = 1000
     max_wall_hours: Optional[float] = None
     checkpoint_every_min: float = 5.0
+    snapshot_every: int = 0  # as in training: checkpoint copies for selection on other seeds
     out_dir: Optional[str] = None  # null: the hydra run folder; a folder with a checkpoint resumes
     runs_root: str = "runs"
     progress: bool = True

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import signal
 import threading
 import time
@@ -41,7 +42,8 @@ from pnp.training.tasks import make_env, schedule_of
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
 # env.nthread too: MuJoCo steps each world on its own, so the thread count does not change
 # the numbers, and a run may move to a machine with fewer cores.
-RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "progress", "env.nthread")
+RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "snapshot_every", "progress",
+                    "env.nthread")
 
 
 def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = PopArtMAPPOLoss,
@@ -210,6 +212,13 @@ class Trainer:
             **({"subtasks": self.subtasks.state_dict()} if self.subtasks is not None else {}),
         })
 
+    def snapshot(self) -> Path:
+        """A copy of the checkpoint just written, named by its iteration."""
+        path = self.out_dir / "snapshots" / f"iteration_{self.counters['iteration']:06d}.pt"
+        path.parent.mkdir(exist_ok=True)
+        shutil.copyfile(self.ckpt_path, path)
+        return path
+
     def iteration(self, steps: int) -> dict:
         """Collect, update, log one iteration; returns its metrics row."""
         batch, self.carried = collect(self.env, self.models.actor, self.carried, steps, self.roll_in)
@@ -257,9 +266,12 @@ class Trainer:
                 by_rule = stop_when is not None and stop_when(row)
                 stop = (self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall
                         or stop_signal.received or by_rule)
-                if stop or time.monotonic() - last_ckpt >= every_s:
+                snap = int(cfg.snapshot_every) > 0 and self.counters["iteration"] % int(cfg.snapshot_every) == 0
+                if stop or snap or time.monotonic() - last_ckpt >= every_s:
                     self.checkpoint()
                     last_ckpt = time.monotonic()
+                if snap:
+                    self.snapshot()
                 if stop:
                     break
             if not self.ckpt_path.is_file():  # total already reached at start

@@ -57,11 +57,25 @@ def test_resume_is_bit_for_bit(tmp_path, roll_in):
     assert json.dumps(strip("straight")) == json.dumps(strip("split"))
 
 
+def test_snapshots_are_the_checkpoints_of_their_iterations(tmp_path):
+    tiny_train(tmp_path / "snap", "total_iterations=4", "snapshot_every=2", "seed=5")
+    tiny_train(tmp_path / "two", "total_iterations=2", "seed=5")
+    snaps = sorted(p.name for p in (tmp_path / "snap" / "snapshots").iterdir())
+    assert snaps == ["iteration_000002.pt", "iteration_000004.pt"]
+    a = load_checkpoint(tmp_path / "snap" / "snapshots" / snaps[0])
+    b = load_checkpoint(tmp_path / "two" / "checkpoint.pt")
+    assert a["counters"]["iteration"] == 2
+    for k in a["actor"]:
+        assert torch.equal(a["actor"][k], b["actor"][k]), k
+
+
 def test_resume_takes_only_the_listed_keys_from_the_command_line(tmp_path):
     tiny_train(tmp_path / "run", "total_iterations=1", "env.nthread=2")
-    cfg = compose_cfg("train", [*TINY, "env.nthread=1", "env.num_worlds=8", f"resume={tmp_path / 'run'}"])
+    cfg = compose_cfg("train", [*TINY, "env.nthread=1", "env.num_worlds=8", "snapshot_every=50",
+                                f"resume={tmp_path / 'run'}"])
     saved, _ = resume_config(cfg)
     assert saved.env.nthread == 1 and saved.env.num_worlds == 4  # moved machine; world count is the run's
+    assert saved.snapshot_every == 50
 
 
 def test_warm_start_copies_weights_adam_and_optionally_the_curriculum(tmp_path):

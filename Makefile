@@ -20,13 +20,14 @@ test-all: $(STAMP)
 	WANDB_MODE=offline MUJOCO_GL=egl $(PY) -m pytest -q -m ""
 
 # Main job: the single-robot pipeline from random weights (recipes/config/experiment/
-# single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then 500 trials of its last
-# phase into runs/main (results/ holds only quoted figures). Ctrl-C checkpoints; re-running
-# resumes where it stopped.
+# single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then a checkpoint chosen among
+# the last phase's snapshots on seeds 777 and 778, then 500 trials of it (seed 12345) into
+# runs/main (results/ holds only quoted figures). Ctrl-C checkpoints; re-running resumes.
 RUN ?= runs/main
 train: $(STAMP)
 	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline out_dir=$(RUN) $(ARGS)
-	$(PY) recipes/evaluate.py checkpoint=$(RUN) out=$(RUN)/eval_single_pnp.json
+	$(PY) recipes/select_checkpoint.py run=$(RUN)
+	$(PY) recipes/evaluate.py checkpoint=$(RUN) selected=true env.num_worlds=100 out=$(RUN)/eval_single_pnp.json
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py

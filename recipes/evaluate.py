@@ -2,6 +2,7 @@
 
     python recipes/evaluate.py                                   # newest runs/**/checkpoint.pt, 500 trials
     python recipes/evaluate.py checkpoint=runs/<run> trials=100 env.backend=kinematic out=runs/eval.json
+    python recipes/evaluate.py checkpoint=runs/main selected=true  # the checkpoint recipes/select_checkpoint.py chose
 
 Episodes start from the env's randomised layouts (seeded by ``seed``) and end on success,
 a fall or the 45 s limit; failure causes and trial selection are described in
@@ -25,6 +26,7 @@ from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
 from pnp.training.provenance import provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
+from pnp.training.selection import SELECTION, selected_checkpoint
 
 
 def table_md(result: dict, method: str) -> str:
@@ -58,6 +60,10 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
 
 def evaluate(cfg: DictConfig) -> dict:
     phases, ckpt_path = pipeline_phases(cfg)
+    if cfg.selected:
+        if cfg.phase is not None:
+            raise ValueError(f"selected=true judges the selection's choice; phase={cfg.phase!r} names another checkpoint")
+        ckpt_path = selected_checkpoint(Path(str(cfg.checkpoint)))
     ckpt_path = ckpt_path or resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
     t0 = time.monotonic()
     sample = check_groups(cfg.sample)
@@ -79,6 +85,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "wall_s": time.monotonic() - t0, **provenance(),
     }
+    if cfg.selected:
+        result["selection"] = str(Path(str(cfg.checkpoint)) / SELECTION)
     if phases:  # a pipeline folder: every phase's cost
         first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
         result.update(from_scratch=first.get("warm_start") is None, phases=phases,

@@ -250,7 +250,7 @@ class TrainConfig:
     max_wall_hours: Optional[float] = None  # stop (with a checkpoint) after this much wall time
     checkpoint_every_min: float = 5.0
     # Also keep a copy of the checkpoint every this many iterations, snapshots/iteration_<n>.pt:
-    # the candidates recipes/select.py compares on seeds other than the reporting one. 0: none.
+    # the candidates recipes/select_checkpoint.py compares on seeds other than the reporting one. 0: none.
     snapshot_every: int = 0
     resume: Any = False  # true/latest: newest runs/**/checkpoint.pt; or a run folder / file
     warm_start: Optional[str] = None  # checkpoint whose actor, critic and Adam state initialise this run

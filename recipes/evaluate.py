@@ -60,10 +60,11 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
 
 def evaluate(cfg: DictConfig) -> dict:
     phases, ckpt_path = pipeline_phases(cfg)
-    if cfg.selected:
+    selection = Path(str(cfg.checkpoint)) / SELECTION if cfg.selected else None
+    if selection is not None:
         if cfg.phase is not None:
             raise ValueError(f"selected=true judges the selection's choice; phase={cfg.phase!r} names another checkpoint")
-        ckpt_path = selected_checkpoint(Path(str(cfg.checkpoint)))
+        ckpt_path = selected_checkpoint(selection.parent)
     ckpt_path = ckpt_path or resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
     t0 = time.monotonic()
     sample = check_groups(cfg.sample)
@@ -85,8 +86,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "wall_s": time.monotonic() - t0, **provenance(),
     }
-    if cfg.selected:
-        result["selection"] = str(Path(str(cfg.checkpoint)) / SELECTION)
+    if selection is not None:
+        result["selection"] = str(selection)
     if phases:  # a pipeline folder: every phase's cost
         first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
         result.update(from_scratch=first.get("warm_start") is None, phases=phases,

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.provenance import provenance
-from pnp.training.rollout import load_policy, run_trials
+from pnp.training.rollout import load_policy, run_trials, summarise
 
 SELECTION = "selection.json"
 _PHASE = re.compile(r"^(\d+)_")
@@ -60,16 +60,16 @@ def select(run: Path, newest: int, seeds: list[int], trials: int, num_worlds: in
     rows = []
     bar = tqdm(total=len(cands) * len(seeds), disable=not progress, desc="selection")
     for iteration, path in cands:
-        success = {}
+        success, causes = {}, {}
         for seed in seeds:
             pol = load_policy(path, min(int(num_worlds), int(trials)), int(seed), **env_overrides)
-            records = run_trials(pol.env, pol.actor, int(trials))
+            summary = summarise(run_trials(pol.env, pol.actor, int(trials)))
             pol.env.close()
-            success[str(seed)] = float(np.mean([r["success"] for r in records]))
+            success[str(seed)], causes[str(seed)] = summary["success_rate"], summary["failure_causes"]
             bar.update(1)
             bar.set_postfix(iteration=iteration, success=f"{success[str(seed)]:.3f}")
         rows.append({"iteration": iteration, "checkpoint": str(path), "success": success,
-                     "mean_success": float(np.mean(list(success.values())))})
+                     "mean_success": float(np.mean(list(success.values()))), "failure_causes": causes})
     bar.close()
     best = max(rows, key=lambda r: (r["mean_success"], r["iteration"]))
     result = {"run": str(run), "seeds": [int(s) for s in seeds], "trials": int(trials), "candidates": rows,

@@ -52,7 +52,7 @@ def test_selection_then_evaluation_of_the_selected_checkpoint(tmp_path):
     assert [c["iteration"] for c in result["candidates"]] == [2, 3]  # the far phase's
     best = max(result["candidates"], key=lambda c: (c["mean_success"], c["iteration"]))
     for c in result["candidates"]:
-        assert set(c["success"]) == {"1", "2"} and c["mean_success"] == pytest.approx(sum(c["success"].values()) / 2)
+        assert set(c["success"]) == set(c["failure_causes"]) == {"1", "2"} and c["mean_success"] == pytest.approx(sum(c["success"].values()) / 2)
     assert result["selected"] == best["checkpoint"] and "1_far" in best["checkpoint"]
     assert json.loads((run / "selection.json").read_text())["selected"] == best["checkpoint"]
     assert selected_checkpoint(run).as_posix() == best["checkpoint"]

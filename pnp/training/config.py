@@ -244,7 +244,10 @@ class PhaseConfig:
 
 
 @dataclass
-class TrainConfig:
+class RunConfig:
+    """What every on-policy run has (training and distillation): its length, checkpoints,
+    folder and the env, reward, model, loss, optimiser, collection and logger sections."""
+
     seed: int = 0
     total_iterations: int = 3000
     max_wall_hours: Optional[float] = None  # stop (with a checkpoint) after this much wall time
@@ -252,12 +255,7 @@ class TrainConfig:
     # Also keep a copy of the checkpoint every this many iterations, snapshots/iteration_<n>.pt:
     # the candidates recipes/select_checkpoint.py compares on seeds other than the reporting one. 0: none.
     snapshot_every: int = 0
-    resume: Any = False  # true/latest: newest runs/**/checkpoint.pt; or a run folder / file
-    warm_start: Optional[str] = None  # checkpoint whose actor, critic and Adam state initialise this run
-    # Also its curriculum state. Not for a new task: a slot in the final stage keeps rho = mu.
-    warm_start_curriculum: bool = False
-    warm_start_fold_constant: bool = False  # blind the nets to inputs that never moved in the source run
-    out_dir: Optional[str] = None  # null: the hydra run folder
+    out_dir: Optional[str] = None  # null: the hydra run folder; a folder with a checkpoint resumes
     runs_root: str = "runs"
     progress: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -267,6 +265,15 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+@dataclass
+class TrainConfig(RunConfig):
+    resume: Any = False  # true/latest: newest runs/**/checkpoint.pt; or a run folder / file
+    warm_start: Optional[str] = None  # checkpoint whose actor, critic and Adam state initialise this run
+    # Also its curriculum state. Not for a new task: a slot in the final stage keeps rho = mu.
+    warm_start_curriculum: bool = False
+    warm_start_fold_constant: bool = False  # blind the nets to inputs that never moved in the source run
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     # Phases by name, declared once: an experiment that extends another reuses its phases.
     phases: Dict[str, PhaseConfig] = field(default_factory=dict)

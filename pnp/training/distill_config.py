@@ -32,9 +32,7 @@ from typing import Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.training.config import (
-    CollectConfig, CurriculumConfig, EnvConfig, LoggerConfig, LossConfig, ModelConfig, OptimConfig,
-)
+from pnp.training.config import CurriculumConfig, RunConfig
 
 MOCAP_FIELDS = ["object.box_pos", "object.box_x_axis", "object.box_y_axis", "object.box_lin_vel",
                 "object.box_ang_vel", "object.handles"]
@@ -108,26 +106,13 @@ class KLConfig:
 
 
 @dataclass
-class DistillConfig:
-    seed: int = 0
+class DistillConfig(RunConfig):
     total_iterations: int = 1000
-    max_wall_hours: Optional[float] = None
-    checkpoint_every_min: float = 5.0
-    snapshot_every: int = 0  # as in training: checkpoint copies for selection on other seeds
-    out_dir: Optional[str] = None  # null: the hydra run folder; a folder with a checkpoint resumes
-    runs_root: str = "runs"
-    progress: bool = True
     distill: KLConfig = field(default_factory=KLConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     student: StudentConfig = field(default_factory=StudentConfig)
-    env: EnvConfig = field(default_factory=EnvConfig)
     # The student's reward: the stage-wise terms at their mu_j, no curriculum (paper Sec. III-C).
     curriculum: CurriculumConfig = field(default_factory=lambda: CurriculumConfig(schedule="fixed"))
-    model: ModelConfig = field(default_factory=ModelConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    collect: CollectConfig = field(default_factory=CollectConfig)
-    logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
 def distill_config(saved: dict) -> DictConfig:

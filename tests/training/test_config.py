@@ -18,7 +18,7 @@ from tests.training._tiny import ROOT, TINY, compose_cfg
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "recipes" / "config" / "experiment").glob("*.yaml"))
 QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/train_single/checkpoint_kinematic.pt",
                       "results/train_dual/dual_mj2/checkpoint.pt", "results/repro_single_pnp_checkpoint.pt",
-                      "results/repro_dual_pnp_checkpoint.pt"]
+                      "results/repro_dual_pnp_checkpoint.pt", "results/repro_dual_pnp_free_handles_checkpoint.pt"]
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)

@@ -255,7 +255,7 @@ class RunConfig:
     # Also keep a copy of the checkpoint every this many iterations, snapshots/iteration_<n>.pt:
     # the candidates recipes/select_checkpoint.py compares on seeds other than the reporting one. 0: none.
     snapshot_every: int = 0
-    out_dir: Optional[str] = None  # null: the hydra run folder; a folder with a checkpoint resumes
+    out_dir: Optional[str] = None  # null: the hydra run folder; a pipeline or distillation resumes one with a checkpoint
     runs_root: str = "runs"
     progress: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)

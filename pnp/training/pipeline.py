@@ -5,7 +5,8 @@ Layout of ``out_dir``: ``pipeline.json`` (the phases finished so far: name, over
 iterations, frames, wall time, how each ended) and one folder per phase,
 ``<index>_<name>/``, a normal run folder (checkpoint, metrics, plots). Re-running the same
 command resumes: finished phases are skipped, the current one resumes bit for bit from
-its checkpoint, and the next starts from the last one's final checkpoint.
+its checkpoint, and the next starts from the last one's final checkpoint. Raising the
+``max_frames`` of the last finished phase, if its budget ended it, trains it on.
 
 What used to be done by hand between runs happens here: the weights, Adam state and
 observation statistics carry over; the curriculum state (rho per world) carries over and
@@ -150,6 +151,20 @@ def _read_rows(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
 
 
+def _reopen_grown_budget(done: list[dict], budgets: list[int]) -> None:
+    """A finished phase that ended by its budget, now larger, resumes (the records drop it):
+    raising the last phase's ``max_frames`` and rerunning the command trains on."""
+    grown = [i for i, d in enumerate(done) if d["exit"] == "budget" and budgets[i] > d["iterations"]]
+    if not grown:
+        return
+    i = grown[0]
+    if i != len(done) - 1:
+        raise ValueError(f"phase {done[i]['name']!r} ended by its budget at {done[i]['iterations']} iterations and "
+                         f"its budget is now {budgets[i]}, but later phases started from its end: restore its "
+                         "max_frames or use another out_dir")
+    done.pop()
+
+
 def run_pipeline(cfg: DictConfig) -> dict:
     """Run (or resume) ``cfg.pipeline`` in ``cfg.out_dir``; returns the phase records and
     whether the pipeline finished (``False`` when a signal stopped it)."""
@@ -171,6 +186,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
     budgets = [math.ceil(int(p.max_frames) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
                for i, (_, p) in enumerate(phases)]
+    _reopen_grown_budget(done, budgets)
     bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
     bar.update(sum(d["iterations"] for d in done))
     for index in range(len(done), len(names)):

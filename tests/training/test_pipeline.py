@@ -71,6 +71,26 @@ def test_a_phase_edited_after_its_start_is_refused_on_resume(tmp_path):
     assert run_pipeline(_cfg(tmp_path / "run", "max_wall_hours=1.0"))["finished"]  # run-time keys may change
 
 
+def _budgets(near: int, far: int) -> str:
+    return (f"++phases={{near: {{max_frames: {near}, overrides: {{env.start_range: [0.6, 1.5]}}}},"
+            f"far: {{max_frames: {far}, overrides: {{env.num_worlds: 8, collect.frames_per_batch: 40}}}}}}")
+
+
+def test_a_raised_budget_trains_the_last_phase_on_as_if_it_had_been_set_from_the_start(tmp_path):
+    straight = run_pipeline(_cfg(tmp_path / "a", _budgets(80, 200)))
+    assert run_pipeline(_cfg(tmp_path / "b"))["phases"][-1]["iterations"] == 3  # ended by its budget of 120
+    extended = run_pipeline(_cfg(tmp_path / "b", _budgets(80, 200)))
+    assert extended["finished"]
+    ends = [[(p["iterations"], p["frames"], p["exit"]) for p in r["phases"]] for r in (straight, extended)]
+    assert ends[0] == ends[1] == [(2, 80, "budget"), (5, 200, "budget")]
+    a, b = (load_checkpoint(tmp_path / r / "1_far" / "checkpoint.pt") for r in ("a", "b"))
+    for k in a["actor"]:
+        assert torch.equal(a["actor"][k], b["actor"][k]), k
+    # an earlier phase's budget cannot grow: the later phases started from its end
+    with pytest.raises(ValueError, match=r"phase 'near' ended by its budget at 2 iterations and its budget is now 3"):
+        run_pipeline(_cfg(tmp_path / "b", _budgets(120, 200)))
+
+
 def test_exit_rule_ends_a_phase_and_is_recorded(tmp_path):
     rule = "++phases={near: {max_frames: 80, exit: {metric: frames, min: 40, window: 1}}}"  # met at once
     out = run_pipeline(compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "pipeline=[near]", rule]))

@@ -316,6 +316,24 @@ def migrate(saved: dict) -> DictConfig:
     return OmegaConf.merge(OmegaConf.structured(TrainConfig), saved)
 
 
+
+def changed_settings(now: DictConfig, then: DictConfig, resumable) -> dict:
+    """``{key: (then, now)}`` for every dotted key outside ``resumable`` whose value differs:
+    settings a resume from ``then``'s checkpoint would silently ignore."""
+    a, b = (_flat(OmegaConf.to_container(c, resolve=True)) for c in (now, then))
+    return {k: (b.get(k), a.get(k)) for k in sorted(set(a) | set(b)) if k not in resumable and a.get(k) != b.get(k)}
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def register() -> None:
     """Register the schema with hydra's ConfigStore as ``train_schema`` (train.yaml's base)."""
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)

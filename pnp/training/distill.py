@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pnp.losses.distillation import DistillationPPOLoss
 from pnp.training.checkpoint import load_checkpoint, load_module, seed_everything
+from pnp.training.config import changed_settings
 from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
 from pnp.training.distill_config import distill_config
 from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
@@ -38,6 +39,10 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         return cfg, None
     ckpt = load_checkpoint(path)
     saved = distill_config(ckpt["cfg"])
+    changed = changed_settings(cfg, saved, {*RESUME_OVERRIDES, "out_dir", "logger.exp_name"})  # the name: derived at start
+    if changed:  # a resume runs the checkpoint's settings: the edit would be silently ignored
+        raise ValueError(f"{path} was started with other settings (key: (then, now)) {changed}; "
+                         "restore them or use another out_dir")
     for k in RESUME_OVERRIDES:
         OmegaConf.update(saved, k, OmegaConf.select(cfg, k), merge=False)
     saved.out_dir = str(path.parent)

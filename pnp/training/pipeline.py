@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import windowed_mean
-from pnp.training.config import migrate
+from pnp.training.config import changed_settings, migrate
 from pnp.training.plots import plot_pipeline
 from pnp.training.trainer import RESUME_OVERRIDES, Trainer
 
@@ -127,19 +127,7 @@ _RESUMABLE = set(RESUME_OVERRIDES) | {"out_dir", "resume", "warm_start", "warm_s
 def changed_since_start(pcfg: DictConfig, saved: dict) -> dict:
     """``{key: (at start, now)}`` for every setting of a resumed phase that differs from its
     checkpoint's: a resume runs the checkpoint's settings, so such an edit would be ignored."""
-    now, then = (_flat(OmegaConf.to_container(c, resolve=True)) for c in (pcfg, migrate(saved)))
-    return {k: (then.get(k), now.get(k)) for k in sorted(set(now) | set(then))
-            if k not in _RESUMABLE and then.get(k) != now.get(k)}
-
-
-def _flat(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict) and value:
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
+    return changed_settings(pcfg, migrate(saved), _RESUMABLE)
 
 
 def load_state(out_dir: Path) -> list[dict]:

@@ -108,9 +108,11 @@ def test_distillation_checkpoints_and_resumes_bit_for_bit(teacher, tmp_path):
     distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'straight'}", "total_iterations=3"]))
     distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=2"]))
     assert load_checkpoint(tmp_path / "split" / "checkpoint.pt")["counters"]["iteration"] == 2
-    # same folder: resumes; keys outside the trainer's resume overrides (distill.beta) are the checkpoint's
-    distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3",
-                                    "distill.beta=5"]))
+    # same folder: resumes; an edit outside the trainer's resume overrides would be ignored, so it is refused
+    with pytest.raises(ValueError, match=r"started with other settings .*'distill.beta': \(1.0, 5.0\)"):
+        distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3",
+                                        "distill.beta=5"]))
+    distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3"]))
     a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt") for run in ("straight", "split"))
     assert a["counters"]["iteration"] == b["counters"]["iteration"] == 3
     assert "transforms.3.held" in a["curriculum"] and "transforms.4.history" in a["curriculum"]  # noise, history
@@ -159,8 +161,11 @@ def test_each_experiment_has_its_teachers_settings(name):
     saved = migrate(torch.load(ROOT / cfg.distill.teacher, weights_only=False, map_location="cpu")["cfg"])
     check_teacher(cfg, saved, cfg.distill.teacher)
     assert cfg.curriculum.schedule == "fixed"
-    for group in ("env", "model", "loss", "optim", "collect"):
+    for group in ("env", "model", "loss", "collect"):
         assert cfg[group] == saved[group], group
+    # the lr is fixed: the KL-adaptive one sat at its floor under the teacher's KL
+    rest = lambda optim: {k: v for k, v in optim.items() if k not in ("lr", "lr_schedule")}  # noqa: E731
+    assert cfg.optim.lr_schedule == "fixed" and rest(cfg.optim) == rest(saved.optim)
 
 
 def test_evaluate_student_recipe_writes_all_three_runs_and_the_provenance(teacher, tmp_path):

@@ -316,7 +316,6 @@ def migrate(saved: dict) -> DictConfig:
     return OmegaConf.merge(OmegaConf.structured(TrainConfig), saved)
 
 
-
 def changed_settings(now: DictConfig, then: DictConfig, resumable) -> dict:
     """``{key: (then, now)}`` for every dotted key outside ``resumable`` whose value differs:
     settings a resume from ``then``'s checkpoint would silently ignore."""

@@ -18,8 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pnp.losses.distillation import DistillationPPOLoss
 from pnp.training.checkpoint import load_checkpoint, load_module, seed_everything
-from pnp.training.config import changed_settings
 from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
+from pnp.training.config import changed_settings
 from pnp.training.distill_config import distill_config
 from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import ObsNorm

@@ -39,7 +39,7 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         return cfg, None
     ckpt = load_checkpoint(path)
     saved = distill_config(ckpt["cfg"])
-    changed = changed_settings(cfg, saved, {*RESUME_OVERRIDES, "out_dir", "logger.exp_name"})  # the name: derived at start
+    changed = changed_settings(cfg, saved, {*RESUME_OVERRIDES, "out_dir"})
     if changed:  # a resume runs the checkpoint's settings: the edit would be silently ignored
         raise ValueError(f"{path} was started with other settings (key: (then, now)) {changed}; "
                          "restore them or use another out_dir")
@@ -97,10 +97,9 @@ class DistillTrainer(Trainer):
             self._restore(ckpt)
         else:
             self._start()
-        if cfg.logger.exp_name is None:
-            cfg.logger.exp_name = f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}"
         self.wandb_id = ckpt.get("wandb_id") if ckpt else None
-        self.logger = make_logger(cfg, self.out_dir, self.wandb_id)
+        self.logger = make_logger(cfg, self.out_dir, self.wandb_id,
+                                  default_name=f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}")
         if cfg.logger.backend == "wandb":
             self.wandb_id = self.logger.experiment.id
 

@@ -41,9 +41,9 @@ from pnp.training.tasks import make_env, schedule_of
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
 # env.nthread too: MuJoCo steps each world on its own, so the thread count does not change
-# the numbers, and a run may move to a machine with fewer cores.
+# the numbers, and a run may move to a machine with fewer cores; the logger's name names only.
 RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "snapshot_every", "progress",
-                    "env.nthread")
+                    "env.nthread", "logger.exp_name")
 
 
 def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = PopArtMAPPOLoss,
@@ -72,8 +72,11 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
     return saved, ckpt
 
 
-def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None) -> Logger:
-    name = cfg.logger.exp_name or f"{cfg.env.backend}_{cfg.env.num_robots}r_{cfg.curriculum.schedule}_s{cfg.seed}"
+def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None, default_name: str | None = None) -> Logger:
+    """The run's logger, named ``logger.exp_name``, else ``default_name``, else by backend,
+    robot count, schedule and seed."""
+    name = (cfg.logger.exp_name or default_name
+            or f"{cfg.env.backend}_{cfg.env.num_robots}r_{cfg.curriculum.schedule}_s{cfg.seed}")
     if cfg.logger.backend == "csv":
         return CSVLogger(name, log_dir=str(out_dir))
     if cfg.logger.backend == "wandb":

@@ -16,11 +16,12 @@ from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 sys.path.insert(0, str(ROOT / "recipes"))
 import evaluate as evaluate_recipe  # noqa: E402
 
-PHASES = [
-    "pipeline=[near,far]",
-    "++phases={near: {max_frames: 80, overrides: {env.start_range: [0.6, 1.5]}},"
-    "far: {max_frames: 120, overrides: {env.num_worlds: 8, collect.frames_per_batch: 40}}}",
-]
+def _budgets(near: int, far: int) -> str:
+    return (f"++phases={{near: {{max_frames: {near}, overrides: {{env.start_range: [0.6, 1.5]}}}},"
+            f"far: {{max_frames: {far}, overrides: {{env.num_worlds: 8, collect.frames_per_batch: 40}}}}}}")
+
+
+PHASES = ["pipeline=[near,far]", _budgets(80, 120)]
 
 
 def _cfg(out_dir, *extra):
@@ -69,11 +70,6 @@ def test_a_phase_edited_after_its_start_is_refused_on_resume(tmp_path):
     with pytest.raises(ValueError, match=r"phase 'near' .* started with other settings .*'loss.clip_epsilon': \(0.2, 0.1\)"):
         run_pipeline(edited)
     assert run_pipeline(_cfg(tmp_path / "run", "max_wall_hours=1.0"))["finished"]  # run-time keys may change
-
-
-def _budgets(near: int, far: int) -> str:
-    return (f"++phases={{near: {{max_frames: {near}, overrides: {{env.start_range: [0.6, 1.5]}}}},"
-            f"far: {{max_frames: {far}, overrides: {{env.num_worlds: 8, collect.frames_per_batch: 40}}}}}}")
 
 
 def test_a_raised_budget_trains_the_last_phase_on_as_if_it_had_been_set_from_the_start(tmp_path):

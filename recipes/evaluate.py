@@ -82,6 +82,7 @@ def evaluate(cfg: DictConfig) -> dict:
         # This run's training (a warm-started run's source trained before: see warm_started_from).
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
         "warm_started_from": trained.warm_start, "trained_backend": pol.ckpt["cfg"]["env"]["backend"],
+        "training_launches": pol.ckpt.get("launches", []),
         "folded_inputs": pol.folded, "sampled_actions": list(sample),
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "wall_s": time.monotonic() - t0, **provenance(),

@@ -62,6 +62,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
         "teacher": str(ecfg.distill.teacher), "beta": float(ecfg.distill.beta),
         "direction": str(ecfg.distill.direction), "trained_backend": ckpt["cfg"]["env"]["backend"],
+        "training_launches": ckpt.get("launches", []),
         "wall_s": time.monotonic() - t0, **provenance(),
     }
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_student_{env.backend}.json"

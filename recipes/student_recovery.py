@@ -89,7 +89,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
         "seed": int(cfg.seed), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
         "env_steps": int(counters["frames"]), "teacher": str(ecfg.distill.teacher),
-        "trained_backend": ckpt["cfg"]["env"]["backend"], "wall_s": time.monotonic() - t0, **provenance(),
+        "trained_backend": ckpt["cfg"]["env"]["backend"], "training_launches": ckpt.get("launches", []),
+        "wall_s": time.monotonic() - t0, **provenance(),
     }
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"student_recovery_{env.backend}.json"
     return write_result(result, out, table_md(result))

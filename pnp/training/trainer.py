@@ -34,6 +34,7 @@ from pnp.training.keys import (
 )
 from pnp.training.models import fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
+from pnp.training.provenance import provenance
 from pnp.training.ppo import ppo_update
 from pnp.training.sequential import SequentialSchedule
 from pnp.training.start_curriculum import StartCurriculum
@@ -70,6 +71,12 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         OmegaConf.update(saved, k, OmegaConf.select(cfg, k), merge=False)
     saved.out_dir, saved.resume = str(path.parent), str(path)
     return saved, ckpt
+
+
+def launches(ckpt: dict | None) -> list[dict]:
+    """Every start and resume of a run (command, commit, machine, date): a run that crosses
+    sessions may cross machines too, and the same seed differs between CPUs."""
+    return [*((ckpt or {}).get("launches", [])), provenance()]
 
 
 def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None, default_name: str | None = None) -> Logger:
@@ -149,6 +156,7 @@ class Trainer:
         if self.subtasks is not None:
             self.subtasks.sync()
         self.wandb_id = ckpt.get("wandb_id") if ckpt else None
+        self.launches = launches(ckpt)
         self.logger = make_logger(cfg, self.out_dir, self.wandb_id)
         if cfg.logger.backend == "wandb":
             self.wandb_id = self.logger.experiment.id
@@ -210,6 +218,7 @@ class Trainer:
             "actor": m.actor.state_dict(), "critic": m.critic.state_dict(), "optim": self.optim.state_dict(),
             "curriculum": self.env.transform.state_dict(), "env": self.env.base_env.get_state(),
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
+            "launches": self.launches,
             **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
             **({"start_curriculum": self.start_curriculum.state_dict()} if self.start_curriculum is not None else {}),
             **({"subtasks": self.subtasks.state_dict()} if self.subtasks is not None else {}),

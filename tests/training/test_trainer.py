@@ -55,6 +55,9 @@ def test_resume_is_bit_for_bit(tmp_path, roll_in):
     assert (a["carried"] == b["carried"]).all()
     strip = lambda run: [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / run)]  # noqa: E731
     assert json.dumps(strip("straight")) == json.dumps(strip("split"))
+    # The split run records both its launches (command, commit, machine), the straight one its one.
+    assert len(a["launches"]) == 1 and len(b["launches"]) == 2
+    assert {"command", "commit", "machine", "date_utc"} <= set(b["launches"][1])
 
 
 def test_snapshots_are_the_checkpoints_of_their_iterations(tmp_path):

@@ -15,12 +15,13 @@ robot count folds the inputs that never moved before (``warm_start_fold_constant
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import math
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
@@ -97,8 +98,11 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
     for key, value in phase.overrides.items():
         if OmegaConf.select(pcfg, key, default="<missing>") == "<missing>":
             raise ValueError(f"pipeline phase {name!r} overrides unknown key {key!r}")
-        # A mapping (e.g. env.start_curriculum) merges into its node; anything else replaces.
-        OmegaConf.update(pcfg, key, value, merge=isinstance(value, (dict, DictConfig)))
+        # A mapping merges into its node (e.g. env.start_curriculum's keys, checked by its
+        # schema; a free-form map such as curriculum.stage_gates takes new keys); anything else replaces.
+        mapping, node = isinstance(value, (dict, DictConfig)), OmegaConf.select(pcfg, key)
+        with open_dict(node) if mapping and OmegaConf.get_type(node) is dict else contextlib.nullcontext():
+            OmegaConf.update(pcfg, key, value, merge=mapping)
     pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, name))
     pcfg.total_iterations = math.ceil(int(phase.max_frames) / int(pcfg.collect.frames_per_batch))
     pcfg.resume = False

@@ -106,6 +106,12 @@ def schedule_args(cur: DictConfig, task: str = "pnp") -> tuple[str, dict]:
         raise ValueError(f"curriculum.fixed_weights names unknown terms {unknown}; the R_fixed terms of "
                          f"{task!r} are {sorted(cfg['fixed_weights'])}")
     cfg["fixed_weights"].update({k: float(v) for k, v in over.items()})
+    gates = {k: int(v) for k, v in (cur.stage_gates or {}).items()}
+    bad = sorted(k for k, v in gates.items() if k not in cfg["mu"] or not 0 <= v < cfg["n_stages"])
+    if bad:
+        raise ValueError(f"curriculum.stage_gates: {({k: gates[k] for k in bad})} names no stage-wise term of {task!r} "
+                         f"({sorted(cfg['mu'])}) or no stage in [0, {cfg['n_stages']})")
+    cfg["stage_gates"] = {**cfg.get("stage_gates", {}), **gates}
     if not cur.stage_rewards:
         # Control run: only R_fixed; every stage-wise term becomes a fixed term of weight 0.
         cfg["fixed_weights"].update({n: 0.0 for n in cfg["mu"]})

@@ -98,6 +98,22 @@ def test_fixed_weights_override_weights_the_named_term_and_rejects_unknown_names
         make_env(bad.env, bad.curriculum, 0)
 
 
+def test_stage_gates_silence_a_term_below_its_stage_and_reject_bad_entries():
+    gate = "+curriculum.stage_gates.object_to_goal_vel=3"
+    cfg = compose_cfg("train", [*TINY, "curriculum.schedule=fixed", gate])
+    sched = make_env(cfg.env, cfg.curriculum, 0).transform[-1]
+    assert sched.stage_gates == {"grab_action_in_range": 5, "object_to_goal_vel": 3}
+    stage, still = torch.tensor([[2], [3]]), torch.zeros(2, 1, len(sched.term_names))
+    moving = still.clone()
+    moving[..., sched.term_names.index("object_to_goal_vel")] = 1.0  # the box moving to the goal
+    paid = (sched._reward(moving, stage) - sched._reward(still, stage)).view(-1).tolist()
+    assert paid == [0.0, sched.mu["object_to_goal_vel"]]
+    for bad in ("+curriculum.stage_gates.ee_reach=3", "+curriculum.stage_gates.object_to_goal_vel=7"):
+        with pytest.raises(ValueError, match="stage_gates"):
+            c = compose_cfg("train", [*TINY, bad])
+            make_env(c.env, c.curriculum, 0)
+
+
 def test_env_boxes_picks_the_assets():
     cfg = compose_cfg("train", [*TINY, "env.boxes=dual"])
     assert make_env(cfg.env, cfg.curriculum, 0).base_env.box_assets == DUAL_ROBOT_BOXES

@@ -26,7 +26,7 @@ from pnp.training.models import ObsNorm
 from pnp.training.ppo import ppo_update
 from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.student import Teacher, make_student_env, make_student_models
-from pnp.training.trainer import RESUME_OVERRIDES, Trainer, launches, make_logger, make_loss, truncate_metrics
+from pnp.training.trainer import RESUME_OVERRIDES, Trainer, make_loss, truncate_metrics
 
 
 def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
@@ -97,12 +97,7 @@ class DistillTrainer(Trainer):
             self._restore(ckpt)
         else:
             self._start()
-        self.wandb_id = ckpt.get("wandb_id") if ckpt else None
-        self.launches = launches(ckpt)
-        self.logger = make_logger(cfg, self.out_dir, self.wandb_id,
-                                  default_name=f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}")
-        if cfg.logger.backend == "wandb":
-            self.wandb_id = self.logger.experiment.id
+        self._open_log(ckpt, default_name=f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}")
 
     def _norms(self) -> list[tuple[ObsNorm, tuple]]:
         """Each running normalisation with the observation it follows."""

@@ -96,11 +96,12 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
     pcfg = copy.deepcopy(cfg)  # keeps the schema: overrides are type-checked
     pcfg.pipeline, pcfg.phases = [], {}
     for key, value in phase.overrides.items():
-        if OmegaConf.select(pcfg, key, default="<missing>") == "<missing>":
+        node = OmegaConf.select(pcfg, key, default="<missing>")
+        if node == "<missing>":
             raise ValueError(f"pipeline phase {name!r} overrides unknown key {key!r}")
         # A mapping merges into its node (e.g. env.start_curriculum's keys, checked by its
         # schema; a free-form map such as curriculum.stage_gates takes new keys); anything else replaces.
-        mapping, node = isinstance(value, (dict, DictConfig)), OmegaConf.select(pcfg, key)
+        mapping = isinstance(value, (dict, DictConfig))
         with open_dict(node) if mapping and OmegaConf.get_type(node) is dict else contextlib.nullcontext():
             OmegaConf.update(pcfg, key, value, merge=mapping)
     pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, name))

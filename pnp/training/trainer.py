@@ -155,10 +155,14 @@ class Trainer:
             self._start()
         if self.subtasks is not None:
             self.subtasks.sync()
+        self._open_log(ckpt)
+
+    def _open_log(self, ckpt: dict | None, default_name: str | None = None) -> None:
+        """The run's launches and logger (the same wandb run on a resume)."""
         self.wandb_id = ckpt.get("wandb_id") if ckpt else None
         self.launches = launches(ckpt)
-        self.logger = make_logger(cfg, self.out_dir, self.wandb_id)
-        if cfg.logger.backend == "wandb":
+        self.logger = make_logger(self.cfg, self.out_dir, self.wandb_id, default_name)
+        if self.cfg.logger.backend == "wandb":
             self.wandb_id = self.logger.experiment.id
 
     def _restore(self, ckpt: dict) -> None:

@@ -120,6 +120,9 @@ def test_distillation_checkpoints_and_resumes_bit_for_bit(teacher, tmp_path):
         for k in a[part]:
             assert torch.equal(a[part][k], b[part][k]), (part, k)
     assert (a["carried"] == b["carried"]).all()
+    # the split run records both its launches; the refused one never opened the run
+    assert len(a["launches"]) == 1 and len(b["launches"]) == 2
+    assert (tmp_path / "split" / "student_kinematic_1r_s3").is_dir()  # the student's own log name
     strip = lambda run: [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / run)]  # noqa: E731
     assert json.dumps(strip("straight")) == json.dumps(strip("split"))
     row = _rows(tmp_path / "split")[-1]

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.config import ExitRule
-from pnp.training.pipeline import ExitCheck, run_pipeline
+from pnp.training.pipeline import ExitCheck, phase_config, run_pipeline
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes"))
@@ -129,6 +129,17 @@ def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
     changed = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", PHASES[0], PHASES[1].replace("[0.6, 1.5]", "[0.6, 2.0]")])
     with pytest.raises(ValueError, match="finished phase 'near' ran with overrides"):
         run_pipeline(changed)
+
+
+def test_a_mapping_override_adds_keys_to_a_free_form_map_but_not_to_a_typed_node(tmp_path):
+    gates = "++phases={a: {overrides: {curriculum.stage_gates: {object_to_goal_vel: 3}}}}"
+    run_gate = "++curriculum.stage_gates.object_to_goal_dist=3"
+    pcfg = phase_config(compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a]", run_gate, gates]), 0, None)
+    assert dict(pcfg.curriculum.stage_gates) == {"object_to_goal_dist": 3, "object_to_goal_vel": 3}  # merged
+    typed = compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a]",
+                                  "++phases={a: {overrides: {env.start_curriculum: {widen_by: 0.1}}}}"])
+    with pytest.raises(Exception, match="widen_by"):
+        phase_config(typed, 0, None)
 
 
 def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):

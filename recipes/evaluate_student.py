@@ -9,7 +9,8 @@ model on its own observation layout (stage from the simulator), and ``teacher_cl
 reference. Writes one JSON file with the three ``summarise`` figures (success rate,
 completion time, failure causes, stages), the noise model and the provenance, and a
 markdown table beside it (default: ``<run>/eval_student_<backend>.json|md``). The top-level
-``success_rate`` and completion times are the student's.
+``success_rate`` and completion times are the student's. ``noise_scale=0 dropout_p=0`` runs
+all three on exact observations: how much of a student's gap to its teacher the noise is.
 """
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ def evaluate(cfg: DictConfig) -> dict:
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
     ecfg, ckpt, runs = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), bool(cfg.progress),
-                                      **overrides)
+                                      cfg.noise_scale, cfg.dropout_p, **overrides)
     env, counters, student = ecfg.env, ckpt["counters"], runs["student"]
     result = {
         "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),

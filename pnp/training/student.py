@@ -224,14 +224,24 @@ class Teacher:
 
 
 def evaluate_views(path: str | Path, trials: int, num_worlds: int, seed: int, progress: bool = False,
+                   noise_scale: float | None = None, dropout_p: float | None = None,
                    **env_overrides) -> tuple[DictConfig, dict, dict[str, dict]]:
     """``trials`` deterministic episodes each of the student (its noisy observation), the
     teacher with the same noise on its own layout, and the teacher on clean observations
     (:data:`EVALUATIONS`), in evaluation envs (``rollout.evaluation_env_config``) built
-    alike from the same seed. Returns the evaluation configuration, the student checkpoint
+    alike from the same seed. ``noise_scale`` and ``dropout_p`` replace the training noise
+    model's (None keeps it). Returns the evaluation configuration, the student checkpoint
     and the ``summarise`` figures by run."""
     ckpt = load_checkpoint(Path(path))
     cfg = distill_config(ckpt["cfg"])
+    if noise_scale is not None:
+        if not float(noise_scale) >= 0.0:
+            raise ValueError(f"noise_scale={noise_scale!r}: must be >= 0")
+        cfg.noise.scale = float(noise_scale)
+    if dropout_p is not None:
+        if not 0.0 <= float(dropout_p) <= 1.0:
+            raise ValueError(f"dropout_p={dropout_p!r}: must be in [0, 1]")
+        cfg.noise.dropout.p = float(dropout_p)
     evaluation_env_config(cfg.env, num_worlds, **env_overrides)
     results = {}
     for name, view in EVALUATIONS.items():

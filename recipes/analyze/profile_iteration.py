@@ -5,8 +5,9 @@ TorchRL transforms) and the PPO update, for any training configuration.
     python recipes/analyze/profile_iteration.py backend=mujoco env.num_worlds=1024 collect.frames_per_batch=16384
 
 Arguments are those of recipes/train.py (hydra overrides) plus ``iterations`` (timed after
-one untimed warm-up iteration) and ``out``. Torch runs on one thread and MuJoCo's pool on
-``env.nthread``, as in training.
+one untimed warm-up iteration), ``out`` and ``threads``: torch's thread counts for collection
+and update, as pairs, e.g. ``threads=1/1,1/2,2/2``; each pair is profiled in turn in this
+process and reported with its ratio to the first. MuJoCo's pool runs on ``env.nthread``.
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from pnp.training.trainer import make_loss
 CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "config")
 
 
-def profile(cfg, iterations: int) -> dict:
+def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1) -> dict:
     torch.manual_seed(int(cfg.seed))
     env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
     models = make_models(cfg.model, cfg.loss, env)
@@ -40,6 +41,7 @@ def profile(cfg, iterations: int) -> dict:
     for it in range(iterations + 1):
         t = {k: 0.0 for k in times}
         out = []
+        torch.set_num_threads(collect_threads)
         with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
             for _ in range(steps):
                 t0 = time.perf_counter()
@@ -49,6 +51,7 @@ def profile(cfg, iterations: int) -> dict:
                 t["policy_s"] += t1 - t0
                 t["env_step_s"] += time.perf_counter() - t1
                 out.append(td)
+        torch.set_num_threads(update_threads)
         t0 = time.perf_counter()
         ppo_update(torch.stack(out, -1), loss, optim, cfg)
         t["ppo_update_s"] = time.perf_counter() - t0
@@ -56,18 +59,33 @@ def profile(cfg, iterations: int) -> dict:
             times = {k: times[k] + t[k] / iterations for k in times}
     env.close()
     total = sum(times.values())
-    return {"backend": cfg.env.backend, "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
+    return {"collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
+            "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
             "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
             "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
             "frames_per_s": steps * env.base_env.num_worlds / total}
 
 
 def main(argv: list[str]) -> dict:
-    opts = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] in ("iterations", "out")}
+    opts = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv
+            if a.split("=", 1)[0] in ("iterations", "out", "threads")}
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose("train", overrides=[a for a in argv if a.split("=", 1)[0] not in opts])
-    torch.set_num_threads(1)
-    result = {**profile(cfg, int(opts.get("iterations", 3))), **provenance()}
+    pairs = [pair.split("/") for pair in opts.get("threads", "1/1").split(",")]
+    if not all(len(pair) == 2 and all(n.isdigit() and int(n) >= 1 for n in pair) for pair in pairs):
+        raise ValueError(f"threads={opts['threads']!r}: expected collect/update pairs such as 1/1,1/2")
+    pairs = [(int(c), int(u)) for c, u in pairs]
+    before = torch.get_num_threads()
+    try:
+        rows = [profile(cfg, int(opts.get("iterations", 3)), *pair) for pair in pairs]
+    finally:
+        torch.set_num_threads(before)
+    for row in rows:
+        row["time_ratio_to_first"] = row["seconds_per_iteration"] / rows[0]["seconds_per_iteration"]
+        print(f"torch threads collect {row['collect_threads']} update {row['update_threads']}: "
+              f"{row['seconds_per_iteration']:.2f} s per iteration (x{row['time_ratio_to_first']:.2f}), "
+              f"env {row['env_step_s']:.2f} s, update {row['ppo_update_s']:.2f} s")
+    result = {**rows[0], "runs": rows[1:], **provenance()} if len(rows) > 1 else {**rows[0], **provenance()}
     out = Path(opts.get("out", "runs/profile_iteration.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")

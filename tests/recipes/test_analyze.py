@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
+import pytest
+
 from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
@@ -29,3 +31,13 @@ def test_profile_iteration_splits_the_time(tmp_path):
     assert out["frames_per_iteration"] == 16 and out["seconds_per_iteration"] > 0
     assert abs(out["policy_share"] + out["env_step_share"] + out["ppo_update_share"] - 1) < 1e-6
     assert json.loads((tmp_path / "p.json").read_text())["backend"] == "kinematic"
+
+
+def test_profile_iteration_compares_thread_splits(tmp_path):
+    out = profile_iteration.main(["backend=kinematic", "env.num_worlds=4", "collect.frames_per_batch=16",
+                                  "collect.minibatch_size=8", "model.actor_cells=[16]", "model.critic_cells=[16]",
+                                  "iterations=1", "threads=1/1,1/2", f"out={tmp_path / 'p.json'}"])
+    assert (out["collect_threads"], out["update_threads"]) == (1, 1) and out["time_ratio_to_first"] == 1.0
+    assert [(r["collect_threads"], r["update_threads"]) for r in out["runs"]] == [(1, 2)]
+    with pytest.raises(ValueError, match="threads='1-2'"):
+        profile_iteration.main(["backend=kinematic", "threads=1-2"])

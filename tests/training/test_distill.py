@@ -184,3 +184,14 @@ def test_evaluate_student_recipe_writes_all_three_runs_and_the_provenance(teache
         assert key in saved, key
     assert saved["success_rate"] == saved["student"]["success_rate"] and saved["backend"] == "kinematic"
     assert result["trials"] == 4 and (tmp_path / "eval.md").read_text().startswith("| Policy |")
+
+
+def test_evaluate_student_recipe_can_switch_the_noise_off(teacher, tmp_path):
+    distill(_cfg(teacher, f"out_dir={tmp_path / 'run'}", "total_iterations=1"))
+    args = [f"checkpoint={tmp_path / 'run'}", "trials=2", "env.num_worlds=2", "env.max_episode_steps=4",
+            f"out={tmp_path / 'eval.json'}", "progress=false"]
+    evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["noise_scale=0", "dropout_p=0"]))
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    assert saved["noise"]["scale"] == 0.0 and saved["noise"]["dropout"]["p"] == 0.0
+    with pytest.raises(ValueError, match="dropout_p=1.5"):
+        evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["dropout_p=1.5"]))

@@ -88,6 +88,9 @@ class StudentConfig:
     history_length: int = 5
     drop_fields: List[str] = field(
         default_factory=lambda: ["ego.arm_q", "ego.ee_pos", "ego.ee_yaw_sincos", "object.handles_from_ee"])
+    # A diagnostic, not the paper's student: the stage one-hot as a second input (how much of
+    # a student's gap to its teacher the stage it cannot see is).
+    sees_stage: bool = False
 
 
 @dataclass

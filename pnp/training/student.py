@@ -112,10 +112,11 @@ def make_student_env(cfg: DictConfig, seed: int, view: str = "student") -> Trans
 
 
 class StudentNet(AgentNet):
-    """:class:`AgentNet` over the student's observation alone: no stage input."""
+    """:class:`AgentNet` over the student's observation alone (no stage input), or with the
+    stage where ``student.sees_stage`` asks for it (a diagnostic, not a deployable student)."""
 
-    def forward(self, obs: torch.Tensor):
-        return super().forward(obs, obs[..., :0])
+    def forward(self, obs: torch.Tensor, stage: torch.Tensor | None = None):
+        return super().forward(obs, obs[..., :0] if stage is None else stage)
 
 
 @dataclass
@@ -129,7 +130,8 @@ class StudentModels:
     critic_norm: ObsNorm | None  # the critic's, over the clean observation
 
 
-def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: TransformedEnv) -> StudentModels:
+def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: TransformedEnv,
+                        sees_stage: bool = False) -> StudentModels:
     """A decentralised actor over ``STUDENT_OBS`` (its own ObsNorm), with the distribution
     family, parameter head and critic that :func:`make_models` builds for the teacher (its
     teacher-shaped actor is dropped).
@@ -143,11 +145,13 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
     base = make_models(model_cfg, loss_cfg, env)
     n_agents, n_in = env.observation_spec[STUDENT_OBS].shape[-2:]
     n_act = env.full_action_spec_unbatched[ACTION].shape[-1]
-    net = StudentNet(n_in, 2 * n_act, n_agents, False, model_cfg.actor_cells, head=base.actor_net.head,
+    n_stage = env.observation_spec[STAGE_ONE_HOT].shape[-1] if sees_stage else 0
+    net = StudentNet(n_in + n_stage, 2 * n_act, n_agents, False, model_cfg.actor_cells, head=base.actor_net.head,
                      obs_norm=ObsNorm(n_in) if model_cfg.obs_norm else None)
     family = base.actor.module[-1]  # the KL reads the teacher's parameters with this same family
+    in_keys = [STUDENT_OBS, STAGE_ONE_HOT] if sees_stage else [STUDENT_OBS]
     actor = ProbabilisticActor(
-        TensorDictModule(net, in_keys=[STUDENT_OBS], out_keys=[LOC, SCALE]),
+        TensorDictModule(net, in_keys=in_keys, out_keys=[LOC, SCALE]),
         in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=family.distribution_class,
         distribution_kwargs=family.distribution_kwargs, return_log_prob=True, log_prob_key=LOG_PROB,
     )
@@ -158,7 +162,7 @@ def load_student_actor(cfg: DictConfig, env: TransformedEnv, ckpt: dict) -> Prob
     """A student checkpoint's actor in ``env`` (built from ``cfg``); inputs that never moved
     on the training backend are folded when ``cfg.env.backend`` is another (as
     ``rollout.load_policy`` does for a teacher)."""
-    models = make_student_models(cfg.model, cfg.loss, env)
+    models = make_student_models(cfg.model, cfg.loss, env, bool(cfg.student.sees_stage))
     models.actor.load_state_dict(ckpt["actor"])
     if cfg.env.backend != ckpt["cfg"]["env"]["backend"] and isinstance(models.actor_net.obs_norm, ObsNorm):
         fold_constant_inputs(models.actor_net.obs_norm, [models.actor_net])

@@ -69,6 +69,16 @@ def test_student_observation_drops_the_ee_pose_for_an_arm_history_and_has_no_sta
     assert (history[..., 0, :] - clean[..., ARM_Q]).abs().max() < 0.1  # noisy arm joints (sigma 0.01 rad)
 
 
+def test_a_diagnostic_student_can_be_given_the_stage():
+    cfg = _cfg(None, "task=dual_pnp", "student.sees_stage=true")
+    env = make_student_env(cfg, 0)
+    actor = make_student_models(cfg.model, cfg.loss, env, sees_stage=True).actor
+    assert actor.in_keys == [STUDENT_OBS, STAGE_ONE_HOT]
+    td = actor(env.reset())
+    stage_only = td.clone().set(STAGE_ONE_HOT, torch.roll(td[STAGE_ONE_HOT], 1, -1))
+    assert not torch.equal(actor(stage_only)[LOC], td[LOC])  # the stage reaches the output
+
+
 def test_without_noise_the_student_sees_the_clean_columns_and_their_history():
     env = make_student_env(_cfg(None, "noise.scale=0", "noise.dropout.p=0"), 0)
     td = env.rollout(4)

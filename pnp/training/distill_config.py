@@ -106,6 +106,11 @@ class KLConfig:
     # The critic starts as the teacher's (same clean observation and stage as input): its
     # values are those of a good policy from the first iteration.
     critic_from_teacher: bool = True
+    # True: curriculum.backward_edges may add edges to the teacher's graph, and the teacher
+    # labels with this graph's stage. Why: where the teacher's graph has no way back (dual: S3),
+    # a dropped box stays S3 for the teacher and looks like S0 to the student; 78 % of the dual
+    # student's S3 steps had no grasp, each labelled with the teacher's S3 action (docs/distillation.md).
+    add_backward_edges: bool = False
 
 
 @dataclass

@@ -185,10 +185,12 @@ def check_teacher(cfg: DictConfig, teacher_cfg: DictConfig, path: str | Path) ->
         if mine != theirs:
             raise ValueError(f"teacher {path} was trained with env.{key}={theirs!r}, this run has env.{key}={mine!r}")
     edges = [sorted(stage_graph(c.curriculum, "pnp").backward_edges) for c in (cfg, teacher_cfg)]
-    if edges[0] != edges[1]:
+    added_ok = bool(cfg.distill.add_backward_edges) and set(edges[1]) <= set(edges[0])
+    if edges[0] != edges[1] and not added_ok:
         raise ValueError(f"teacher {path} was trained with the backward edges {edges[1]} (curriculum.backward_edges="
                          f"{OmegaConf.to_container(teacher_cfg.curriculum)['backward_edges']}), this run has "
-                         f"{edges[0]}: its stage one-hot would differ")
+                         f"{edges[0]}: its stage one-hot would differ (distill.add_backward_edges=true allows "
+                         "edges added to the teacher's)")
     if cfg.model.grasp_dist != teacher_cfg.model.grasp_dist:
         raise ValueError(f"teacher {path} has model.grasp_dist={teacher_cfg.model.grasp_dist!r}, this run "
                          f"{cfg.model.grasp_dist!r}: the KL needs one distribution family")

@@ -205,3 +205,18 @@ def test_evaluate_student_recipe_can_switch_the_noise_off(teacher, tmp_path):
     assert saved["noise"]["scale"] == 0.0 and saved["noise"]["dropout"]["p"] == 0.0
     with pytest.raises(ValueError, match="dropout_p=1.5"):
         evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["dropout_p=1.5"]))
+
+
+def test_a_student_may_add_backward_edges_to_its_teachers_graph_but_not_drop_any():
+    cfg = compose_cfg("distill", ["distill_experiment=dual"])
+    saved = migrate(torch.load(ROOT / cfg.distill.teacher, weights_only=False, map_location="cpu")["cfg"])
+    theirs = [list(e) for e in saved.curriculum.backward_edges]
+    more = [*theirs, ["object_lifted", "object_grabbed"]]
+    with pytest.raises(ValueError, match="distill.add_backward_edges=true allows"):
+        check_teacher(compose_cfg("distill", ["distill_experiment=dual", f"curriculum.backward_edges={more}"]),
+                      saved, cfg.distill.teacher)
+    check_teacher(compose_cfg("distill", ["distill_experiment=dual", f"curriculum.backward_edges={more}",
+                                          "distill.add_backward_edges=true"]), saved, cfg.distill.teacher)
+    with pytest.raises(ValueError, match="its stage one-hot would differ"):  # dropping one is never allowed
+        check_teacher(compose_cfg("distill", ["distill_experiment=dual", f"curriculum.backward_edges={theirs[1:]}",
+                                              "distill.add_backward_edges=true"]), saved, cfg.distill.teacher)

@@ -63,6 +63,8 @@ def noise_transforms(noise: DictConfig, in_key, out_key, seed: int, num_robots: 
     has no neighbour: that block stays the zeros it is (noise there would be pure noise
     inputs, at unit scale after normalisation).
     """
+    if not float(noise.scale) >= 0.0:
+        raise ValueError(f"noise.scale={noise.scale!r}: must be >= 0")
     fields = {}
     for block, sigmas in noise.sigma.items():
         if block == "neighbour" and num_robots == 1:
@@ -240,13 +242,9 @@ def evaluate_views(path: str | Path, trials: int, num_worlds: int, seed: int, pr
     and the ``summarise`` figures by run."""
     ckpt = load_checkpoint(Path(path))
     cfg = distill_config(ckpt["cfg"])
-    if noise_scale is not None:
-        if not float(noise_scale) >= 0.0:
-            raise ValueError(f"noise_scale={noise_scale!r}: must be >= 0")
+    if noise_scale is not None:  # checked where the noise is built, as in training
         cfg.noise.scale = float(noise_scale)
     if dropout_p is not None:
-        if not 0.0 <= float(dropout_p) <= 1.0:
-            raise ValueError(f"dropout_p={dropout_p!r}: must be in [0, 1]")
         cfg.noise.dropout.p = float(dropout_p)
     evaluation_env_config(cfg.env, num_worlds, **env_overrides)
     results = {}

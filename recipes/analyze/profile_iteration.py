@@ -85,7 +85,7 @@ def main(argv: list[str]) -> dict:
         print(f"torch threads collect {row['collect_threads']} update {row['update_threads']}: "
               f"{row['seconds_per_iteration']:.2f} s per iteration (x{row['time_ratio_to_first']:.2f}), "
               f"env {row['env_step_s']:.2f} s, update {row['ppo_update_s']:.2f} s")
-    result = {**rows[0], "runs": rows[1:], **provenance()} if len(rows) > 1 else {**rows[0], **provenance()}
+    result = {**rows[0], "runs": rows[1:], **provenance()}
     out = Path(opts.get("out", "runs/profile_iteration.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")

@@ -203,8 +203,10 @@ def test_evaluate_student_recipe_can_switch_the_noise_off(teacher, tmp_path):
     evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["noise_scale=0", "dropout_p=0"]))
     saved = json.loads((tmp_path / "eval.json").read_text())
     assert saved["noise"]["scale"] == 0.0 and saved["noise"]["dropout"]["p"] == 0.0
-    with pytest.raises(ValueError, match="dropout_p=1.5"):
+    with pytest.raises(ValueError, match=r"probability must be in \[0, 1\], got 1.5"):
         evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["dropout_p=1.5"]))
+    with pytest.raises(ValueError, match="noise.scale=-1.0: must be >= 0"):
+        evaluate_recipe.evaluate(compose_cfg("evaluate_student", args + ["noise_scale=-1"]))
 
 
 def test_a_student_may_add_backward_edges_to_its_teachers_graph_but_not_drop_any():

@@ -12,6 +12,7 @@ from torchrl.envs import TransformedEnv
 from pnp.task import HL_DT
 from pnp.training.models import dist_from_params
 from pnp.training.keys import ACTION, EPISODE_STAGE, PEAK, REWARD, ROLL_IN, STAGE, STAGE_ONE_HOT
+from pnp.training.recurrent import carry_state
 
 
 def seconds(steps) -> float:
@@ -72,6 +73,7 @@ def collect(env: TransformedEnv, policy: ProbabilisticTensorDictSequential, carr
                 carried[ROLL_IN] = det.unsqueeze(-1)
             td, carried = env.step_and_maybe_reset(carried)
             out.append(td)
+            carry_state(td, carried)
     return torch.stack(out, -1), carried
 
 

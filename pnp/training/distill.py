@@ -24,6 +24,7 @@ from pnp.training.distill_config import distill_config
 from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import ObsNorm
 from pnp.training.ppo import ppo_update
+from pnp.training.recurrent import init_state
 from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.student import Teacher, make_student_env, make_student_models
 from pnp.training.trainer import RESUME_OVERRIDES, Trainer, make_loss, truncate_metrics
@@ -82,7 +83,8 @@ class DistillTrainer(Trainer):
         seed_everything(int(cfg.seed))
         self.env = make_student_env(cfg, int(cfg.seed))
         self.teacher = Teacher(cfg, self.env)
-        self.models = make_student_models(cfg.model, cfg.loss, self.env, bool(cfg.student.sees_stage))
+        self.models = make_student_models(cfg.model, cfg.loss, self.env, bool(cfg.student.sees_stage),
+                                          int(cfg.student.recurrent_cells))
         self.loss = make_loss(cfg.loss, self.models, DistillationPPOLoss, beta=beta_at(cfg.distill, 0),
                               direction=str(cfg.distill.direction))
         self.loss.set_keys(teacher_loc=TEACHER_LOC, teacher_scale=TEACHER_SCALE)
@@ -116,7 +118,7 @@ class DistillTrainer(Trainer):
                     f"model.obs_norm ({list(theirs.model.critic_cells)}, {theirs.loss.value_norm!r}, "
                     f"{theirs.model.obs_norm}), this run has ({list(mine[0])}, {mine[1]!r}, {mine[2]})")
             load_module(m.critic, self.teacher.critic_state)
-        self.carried = self.env.reset()
+        self.carried = init_state(self.env.reset(), m.actor)
         if cfg.collect.desync_episodes:
             self.carried = desync_episodes(self.carried, cfg.env.max_episode_steps)
         for norm, key in self._norms():  # first statistics from the initial layouts

@@ -10,6 +10,7 @@ from tensordict import TensorDictBase
 from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.training.keys import ROLL_IN
 from pnp.training.models import GripperFloor
+from pnp.training.recurrent import recurrent_net
 
 LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "loss_grasp_floor", "entropy",
           "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher")
@@ -30,6 +31,20 @@ def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
             g["lr"] = min(g["lr"] * 1.5, float(ocfg.max_lr))
 
 
+def minibatch_source(batch: TensorDictBase, loss: PopArtMAPPOLoss, cfg: DictConfig) -> TensorDictBase:
+    """What minibatches are drawn from: frames ``[N * T]``, or for a recurrent actor whole
+    segments ``[N, T]`` (one world's steps of this batch, in order: its GRU runs over them)."""
+    if recurrent_net(loss.actor_network) is not None:
+        if ROLL_IN in batch.keys():
+            raise ValueError(f"collect.roll_in_share={cfg.collect.roll_in_share}: roll-ins are dropped frame by "
+                             "frame, which a recurrent student's segments cannot lose; set it to 0")
+        return batch
+    flat = batch.reshape(-1)
+    if ROLL_IN in flat.keys():  # roll-in actions were the mean, not drawn: no policy gradient from them
+        flat = flat[~flat[ROLL_IN].reshape(-1)]
+    return flat
+
+
 def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.Optimizer,
                cfg: DictConfig) -> dict[str, float]:
     """GAE once per iteration, PopArt statistics once, then epochs of shuffled minibatches;
@@ -37,15 +52,14 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     with torch.no_grad():
         loss.value_estimator(batch)
     loss.update_value_norm(batch)
-    flat = batch.reshape(-1)
-    if ROLL_IN in flat.keys():  # roll-in actions were the mean, not drawn: no policy gradient from them
-        flat = flat[~flat[ROLL_IN].reshape(-1)]
+    flat = minibatch_source(batch, loss, cfg)
     params = [p for g in optim.param_groups for p in g["params"]]
     floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
     sums, n = defaultdict(float), 0
-    frames = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
-    for _ in range(int(cfg.collect.num_epochs) if frames else 0):
-        for idx in torch.randperm(frames).split(int(cfg.collect.minibatch_size)):
+    rows = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
+    per_minibatch = max(1, int(cfg.collect.minibatch_size) // (flat.numel() // max(rows, 1)))
+    for _ in range(int(cfg.collect.num_epochs) if rows else 0):
+        for idx in torch.randperm(rows).split(per_minibatch):
             out = loss(flat[idx])
             for f in floors:  # from the actor forward the loss just made
                 out.set("loss_grasp_floor", f.penalty())

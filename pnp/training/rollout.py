@@ -39,6 +39,7 @@ from pnp.training.collect import seconds
 from pnp.training.config import KinematicOptions, migrate
 from pnp.training.keys import ACTION, STAGE
 from pnp.training.models import ObsNorm, dist_from_params, fold_constant_inputs, make_models
+from pnp.training.recurrent import carry_state, init_state
 from pnp.training.tasks import make_env
 
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
@@ -176,11 +177,12 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
     peak = torch.zeros(n_worlds, dtype=torch.long)
     records, step = [], 0
     bar = tqdm(total=trials, disable=not progress, desc="trials")
-    td = env.reset()
+    td = init_state(env.reset(), actor)
     with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
         while bool((count < per_world).any()):
             td = _act(actor, td, groups)
             out, td = env.step_and_maybe_reset(td)
+            carry_state(out, td)
             nxt, step = out["next"], step + 1
             if hook is not None:
                 hook.after_step(env, nxt)

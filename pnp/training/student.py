@@ -27,6 +27,7 @@ from pnp.training.config import migrate
 from pnp.training.distill_config import distill_config
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import AgentNet, ObsNorm, PopArt, fold_constant_inputs, make_models
+from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, STEP_COUNT, RecurrentStudentNet
 from pnp.training.rollout import evaluation_env_config, run_trials, summarise
 from pnp.training.tasks import make_env, stage_graph
 from pnp.transforms import ColumnHistory, ObservationNoise
@@ -126,14 +127,14 @@ class StudentModels:
     """The student's actor and the critic it trains with (see :func:`make_student_models`)."""
 
     actor: ProbabilisticActor
-    actor_net: StudentNet
+    actor_net: StudentNet | RecurrentStudentNet
     critic: TensorDictModule
     popart: PopArt | None
     critic_norm: ObsNorm | None  # the critic's, over the clean observation
 
 
 def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: TransformedEnv,
-                        sees_stage: bool = False) -> StudentModels:
+                        sees_stage: bool = False, recurrent_cells: int = 0) -> StudentModels:
     """A decentralised actor over ``STUDENT_OBS`` (its own ObsNorm), with the distribution
     family, parameter head and critic that :func:`make_models` builds for the teacher (its
     teacher-shaped actor is dropped).
@@ -148,12 +149,21 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
     n_agents, n_in = env.observation_spec[STUDENT_OBS].shape[-2:]
     n_act = env.full_action_spec_unbatched[ACTION].shape[-1]
     n_stage = env.observation_spec[STAGE_ONE_HOT].shape[-1] if sees_stage else 0
-    net = StudentNet(n_in + n_stage, 2 * n_act, n_agents, False, model_cfg.actor_cells, head=base.actor_net.head,
-                     obs_norm=ObsNorm(n_in) if model_cfg.obs_norm else None)
+    obs_norm = ObsNorm(n_in) if model_cfg.obs_norm else None
+    if recurrent_cells and sees_stage:
+        raise ValueError("student.recurrent_cells and student.sees_stage are two answers to the unseen stage: pick one")
+    if recurrent_cells:
+        net = RecurrentStudentNet(n_in, 2 * n_act, n_agents, model_cfg.actor_cells, int(recurrent_cells),
+                                  head=base.actor_net.head, obs_norm=obs_norm)
+        in_keys, out_keys = [STUDENT_OBS, HIDDEN, STEP_COUNT], [LOC, SCALE, HIDDEN_NEXT]
+    else:
+        net = StudentNet(n_in + n_stage, 2 * n_act, n_agents, False, model_cfg.actor_cells, head=base.actor_net.head,
+                         obs_norm=obs_norm)
+        in_keys = [STUDENT_OBS, STAGE_ONE_HOT] if sees_stage else [STUDENT_OBS]
+        out_keys = [LOC, SCALE]
     family = base.actor.module[-1]  # the KL reads the teacher's parameters with this same family
-    in_keys = [STUDENT_OBS, STAGE_ONE_HOT] if sees_stage else [STUDENT_OBS]
     actor = ProbabilisticActor(
-        TensorDictModule(net, in_keys=in_keys, out_keys=[LOC, SCALE]),
+        TensorDictModule(net, in_keys=in_keys, out_keys=out_keys),
         in_keys=[LOC, SCALE], out_keys=[ACTION], distribution_class=family.distribution_class,
         distribution_kwargs=family.distribution_kwargs, return_log_prob=True, log_prob_key=LOG_PROB,
     )
@@ -164,7 +174,8 @@ def load_student_actor(cfg: DictConfig, env: TransformedEnv, ckpt: dict) -> Prob
     """A student checkpoint's actor in ``env`` (built from ``cfg``); inputs that never moved
     on the training backend are folded when ``cfg.env.backend`` is another (as
     ``rollout.load_policy`` does for a teacher)."""
-    models = make_student_models(cfg.model, cfg.loss, env, bool(cfg.student.sees_stage))
+    models = make_student_models(cfg.model, cfg.loss, env, bool(cfg.student.sees_stage),
+                                 int(cfg.student.recurrent_cells))
     models.actor.load_state_dict(ckpt["actor"])
     if cfg.env.backend != ckpt["cfg"]["env"]["backend"] and isinstance(models.actor_net.obs_norm, ObsNorm):
         fold_constant_inputs(models.actor_net.obs_norm, [models.actor_net])

@@ -65,12 +65,14 @@ class RecurrentStudentNet(AgentNet):
         return (*call_head(self.head, y, obs[..., :0]), h)
 
 
-def recurrent_net(module: nn.Module) -> RecurrentStudentNet | None:
-    """The recurrent net inside an actor, if it has one."""
-    return next((m for m in module.modules() if isinstance(m, RecurrentStudentNet)), None)
+def recurrent_net(policy) -> RecurrentStudentNet | None:
+    """The recurrent net inside a policy, if it has one (a scripted policy, a plain function, has none)."""
+    if not isinstance(policy, nn.Module):
+        return None
+    return next((m for m in policy.modules() if isinstance(m, RecurrentStudentNet)), None)
 
 
-def init_state(td: TensorDictBase, actor: nn.Module) -> TensorDictBase:
+def init_state(td: TensorDictBase, actor) -> TensorDictBase:
     """Zero GRU states in a freshly reset ``td`` when ``actor`` is recurrent (else ``td`` as is)."""
     net = recurrent_net(actor)
     if net is not None:

@@ -83,8 +83,9 @@ class DistillTrainer(Trainer):
         seed_everything(int(cfg.seed))
         self.env = make_student_env(cfg, int(cfg.seed))
         self.teacher = Teacher(cfg, self.env)
-        self.models = make_student_models(cfg.model, cfg.loss, self.env, bool(cfg.student.sees_stage),
-                                          int(cfg.student.recurrent_cells))
+        student = cfg.student
+        self.models = make_student_models(cfg.model, cfg.loss, self.env, bool(student.sees_stage),
+                                          int(student.recurrent_cells), float(student.stage_loss_coeff))
         self.loss = make_loss(cfg.loss, self.models, DistillationPPOLoss, beta=beta_at(cfg.distill, 0),
                               direction=str(cfg.distill.direction))
         self.loss.set_keys(teacher_loc=TEACHER_LOC, teacher_scale=TEACHER_SCALE)

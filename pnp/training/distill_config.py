@@ -95,6 +95,9 @@ class StudentConfig:
     # observations, its state read by the MLP beside them (pnp.training.recurrent: the stage
     # is latched, a function of the episode so far).
     recurrent_cells: int = 0
+    # > 0 (needs recurrent_cells): the GRU state also predicts the env's stage, a cross-entropy
+    # of this weight in training; the deployed student reads no stage, as the critic's inputs.
+    stage_loss_coeff: float = 0.0
 
 
 @dataclass

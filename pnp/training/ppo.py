@@ -8,12 +8,12 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.training.keys import ROLL_IN
+from pnp.training.keys import ROLL_IN, STAGE_ONE_HOT
 from pnp.training.models import GripperFloor
 from pnp.training.recurrent import recurrent_net
 
 LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "loss_grasp_floor", "entropy",
-          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher")
+          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher", "loss_stage", "stage_accuracy")
 
 
 def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
@@ -55,14 +55,20 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     flat = minibatch_source(batch, loss, cfg)
     params = [p for g in optim.param_groups for p in g["params"]]
     floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
+    memory = recurrent_net(loss.actor_network)
     sums, n = defaultdict(float), 0
     rows = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
     per_minibatch = max(1, int(cfg.collect.minibatch_size) // (flat.numel() // max(rows, 1)))
     for _ in range(int(cfg.collect.num_epochs) if rows else 0):
         for idx in torch.randperm(rows).split(per_minibatch):
-            out = loss(flat[idx])
+            minibatch = flat[idx]
+            out = loss(minibatch)
             for f in floors:  # from the actor forward the loss just made
                 out.set("loss_grasp_floor", f.penalty())
+            if memory is not None and memory.stage_head is not None:  # likewise
+                loss_stage, accuracy = memory.stage_loss(minibatch.get(STAGE_ONE_HOT))
+                out.set("loss_stage", loss_stage)
+                out.set("stage_accuracy", accuracy)
             adapt_lr(optim, float(out["kl"]), cfg.optim)  # the lr of this very step
             total = sum(v for k, v in out.items() if k.startswith("loss_"))  # MAPPO's, and any a subclass adds
             optim.zero_grad(set_to_none=True)

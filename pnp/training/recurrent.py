@@ -38,12 +38,26 @@ class RecurrentStudentNet(AgentNet):
     and the GRU state after each step."""
 
     def __init__(self, n_obs: int, n_out: int, n_agents: int, cells, hidden: int, head: nn.Module | None = None,
-                 obs_norm: ObsNorm | None = None):
+                 obs_norm: ObsNorm | None = None, n_stages: int = 0, stage_coeff: float = 0.0):
         if hidden < 1:
             raise ValueError(f"student.recurrent_cells={hidden}: a GRU needs at least one cell (0 means no GRU)")
+        if stage_coeff < 0:
+            raise ValueError(f"student.stage_loss_coeff={stage_coeff}: must be >= 0")
         super().__init__(n_obs + hidden, n_out, n_agents, False, cells, head=head, obs_norm=obs_norm)
-        self.hidden_size = hidden
+        self.hidden_size, self.stage_coeff = hidden, float(stage_coeff)
         self.gru = nn.GRUCell(n_obs, hidden)
+        # Training only: the stage read off the GRU state, trained towards the env's stage.
+        self.stage_head = nn.Linear(hidden, n_stages) if stage_coeff > 0 else None
+        self._stage_logits: torch.Tensor | None = None
+
+    def stage_loss(self, stage_one_hot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``stage_coeff`` x cross-entropy of the stage read off the GRU states of the last
+        forward against ``stage_one_hot``, and the share read right."""
+        if self._stage_logits is None:
+            raise RuntimeError("stage_loss needs a forward first (and student.stage_loss_coeff > 0)")
+        logits, target = self._stage_logits.flatten(0, -2), stage_one_hot.argmax(-1).flatten()
+        accuracy = (logits.argmax(-1) == target).float().mean().detach()
+        return self.stage_coeff * nn.functional.cross_entropy(logits, target), accuracy
 
     def _step(self, x: torch.Tensor, h: torch.Tensor, step_count: torch.Tensor) -> torch.Tensor:
         h = torch.where((step_count == 0).unsqueeze(-1), torch.zeros_like(h), h)  # [*, 1, 1] over agents, cells
@@ -61,6 +75,8 @@ class RecurrentStudentNet(AgentNet):
             h = torch.stack(out, 1)
         else:
             raise ValueError(f"RecurrentStudentNet takes observations [N, A, D] or [B, T, A, D], got {tuple(obs.shape)}")
+        if self.stage_head is not None:
+            self._stage_logits = self.stage_head(h)
         y = self.mlp(torch.cat([x, h], -1))
         return (*call_head(self.head, y, obs[..., :0]), h)
 

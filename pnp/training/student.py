@@ -134,7 +134,8 @@ class StudentModels:
 
 
 def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: TransformedEnv,
-                        sees_stage: bool = False, recurrent_cells: int = 0) -> StudentModels:
+                        sees_stage: bool = False, recurrent_cells: int = 0, stage_loss_coeff: float = 0.0
+                        ) -> StudentModels:
     """A decentralised actor over ``STUDENT_OBS`` (its own ObsNorm), with the distribution
     family, parameter head and critic that :func:`make_models` builds for the teacher (its
     teacher-shaped actor is dropped).
@@ -150,11 +151,14 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
     n_act = env.full_action_spec_unbatched[ACTION].shape[-1]
     n_stage = env.observation_spec[STAGE_ONE_HOT].shape[-1] if sees_stage else 0
     obs_norm = ObsNorm(n_in) if model_cfg.obs_norm else None
+    if stage_loss_coeff and not recurrent_cells:
+        raise ValueError(f"student.stage_loss_coeff={stage_loss_coeff} trains a GRU's state: it needs student.recurrent_cells > 0")
     if recurrent_cells and sees_stage:
         raise ValueError("student.recurrent_cells and student.sees_stage are two answers to the unseen stage: pick one")
     if recurrent_cells:
         net = RecurrentStudentNet(n_in, 2 * n_act, n_agents, model_cfg.actor_cells, int(recurrent_cells),
-                                  head=base.actor_net.head, obs_norm=obs_norm)
+                                  head=base.actor_net.head, obs_norm=obs_norm,
+                                  n_stages=env.observation_spec[STAGE_ONE_HOT].shape[-1], stage_coeff=stage_loss_coeff)
         in_keys, out_keys = [STUDENT_OBS, HIDDEN, STEP_COUNT], [LOC, SCALE, HIDDEN_NEXT]
     else:
         net = StudentNet(n_in + n_stage, 2 * n_act, n_agents, False, model_cfg.actor_cells, head=base.actor_net.head,
@@ -175,7 +179,7 @@ def load_student_actor(cfg: DictConfig, env: TransformedEnv, ckpt: dict) -> Prob
     on the training backend are folded when ``cfg.env.backend`` is another (as
     ``rollout.load_policy`` does for a teacher)."""
     models = make_student_models(cfg.model, cfg.loss, env, bool(cfg.student.sees_stage),
-                                 int(cfg.student.recurrent_cells))
+                                 int(cfg.student.recurrent_cells), float(cfg.student.stage_loss_coeff))
     models.actor.load_state_dict(ckpt["actor"])
     if cfg.env.backend != ckpt["cfg"]["env"]["backend"] and isinstance(models.actor_net.obs_norm, ObsNorm):
         fold_constant_inputs(models.actor_net.obs_norm, [models.actor_net])

@@ -85,6 +85,16 @@ def test_a_recurrent_student_resumes_bit_for_bit_and_evaluates(teacher, tmp_path
     assert json.loads((tmp_path / "eval.json").read_text())["student"]["trials"] == 4
 
 
+def test_the_gru_state_can_be_trained_to_tell_the_stage(teacher, tmp_path):
+    distill(_cfg(f"distill.teacher={teacher}", f"out_dir={tmp_path}", "total_iterations=2", "student.stage_loss_coeff=0.5"))
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["train/loss_stage"] > 0 and 0 <= r["train/stage_accuracy"] <= 1 for r in rows)
+    assert "stage_head.weight" in "".join(load_checkpoint(tmp_path / "checkpoint.pt")["actor"])
+    cfg = _cfg()
+    with pytest.raises(ValueError, match="needs student.recurrent_cells > 0"):
+        make_student_models(cfg.model, cfg.loss, make_student_env(cfg, 0), stage_loss_coeff=0.5)
+
+
 def test_roll_ins_and_the_stage_input_are_refused_with_a_gru(teacher, tmp_path):
     with pytest.raises(ValueError, match="roll_in_share=0.5"):
         distill(_cfg(f"distill.teacher={teacher}", f"out_dir={tmp_path}", "total_iterations=1",

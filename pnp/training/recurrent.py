@@ -21,6 +21,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from pnp.training.keys import OBS
 from pnp.training.models import AgentNet, ObsNorm
 from pnp.training.stage_ensemble import call_head
 
@@ -74,7 +75,8 @@ class RecurrentStudentNet(AgentNet):
                 out.append(state)
             h = torch.stack(out, 1)
         else:
-            raise ValueError(f"RecurrentStudentNet takes observations [N, A, D] or [B, T, A, D], got {tuple(obs.shape)}")
+            raise ValueError(f"RecurrentStudentNet takes observations [N, A, D] or [B, T, A, D], "
+                             f"got {tuple(obs.shape)}")
         if self.stage_head is not None:
             self._stage_logits = self.stage_head(h)
         y = self.mlp(torch.cat([x, h], -1))
@@ -82,7 +84,7 @@ class RecurrentStudentNet(AgentNet):
 
 
 def recurrent_net(policy) -> RecurrentStudentNet | None:
-    """The recurrent net inside a policy, if it has one (a scripted policy, a plain function, has none)."""
+    """The recurrent net inside a policy, if it has one (a scripted policy, a function, has none)."""
     if not isinstance(policy, nn.Module):
         return None
     return next((m for m in policy.modules() if isinstance(m, RecurrentStudentNet)), None)
@@ -92,7 +94,7 @@ def init_state(td: TensorDictBase, actor) -> TensorDictBase:
     """Zero GRU states in a freshly reset ``td`` when ``actor`` is recurrent (else ``td`` as is)."""
     net = recurrent_net(actor)
     if net is not None:
-        n_agents = td.get(("agents", "observation")).shape[-2]
+        n_agents = td.get(OBS).shape[-2]
         td.set(HIDDEN, torch.zeros(*td.batch_size, n_agents, net.hidden_size))
     return td
 

@@ -152,7 +152,8 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
     n_stage = env.observation_spec[STAGE_ONE_HOT].shape[-1] if sees_stage else 0
     obs_norm = ObsNorm(n_in) if model_cfg.obs_norm else None
     if stage_loss_coeff and not recurrent_cells:
-        raise ValueError(f"student.stage_loss_coeff={stage_loss_coeff} trains a GRU's state: it needs student.recurrent_cells > 0")
+        raise ValueError(f"student.stage_loss_coeff={stage_loss_coeff} trains a GRU's state: "
+                         "it needs student.recurrent_cells > 0")
     if recurrent_cells and sees_stage:
         raise ValueError("student.recurrent_cells and student.sees_stage are two answers to the unseen stage: pick one")
     if recurrent_cells:

@@ -86,7 +86,8 @@ def test_a_recurrent_student_resumes_bit_for_bit_and_evaluates(teacher, tmp_path
 
 
 def test_the_gru_state_can_be_trained_to_tell_the_stage(teacher, tmp_path):
-    distill(_cfg(f"distill.teacher={teacher}", f"out_dir={tmp_path}", "total_iterations=2", "student.stage_loss_coeff=0.5"))
+    distill(_cfg(f"distill.teacher={teacher}", f"out_dir={tmp_path}", "total_iterations=2",
+                 "student.stage_loss_coeff=0.5"))
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert all(r["train/loss_stage"] > 0 and 0 <= r["train/stage_accuracy"] <= 1 for r in rows)
     assert "stage_head.weight" in "".join(load_checkpoint(tmp_path / "checkpoint.pt")["actor"])

@@ -13,7 +13,8 @@ from pnp.training.models import GripperFloor
 from pnp.training.recurrent import recurrent_net
 
 LOGGED = ("loss_objective", "loss_critic", "loss_entropy", "loss_distill", "loss_grasp_floor", "entropy",
-          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher", "loss_stage", "stage_accuracy")
+          "explained_variance", "clip_fraction", "kl_approx", "kl", "kl_gripper", "kl_teacher", "loss_stage",
+          "stage_accuracy")
 
 
 def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:

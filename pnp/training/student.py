@@ -4,7 +4,8 @@ networks, and the frozen teacher that labels the states it visits.
 The env carries two views of every state: the clean observation and stage one-hot, which
 the teacher and the critic read, and the student's observation (``STUDENT_OBS``): the
 clean one with per-field noise and mocap dropouts (``ObservationNoise``), without its EE
-pose, followed by a history of its noisy arm joints (``ColumnHistory``); no stage. The
+pose, followed by a history of its noisy arm joints (``ColumnHistory``); no stage (a
+recurrent student carries a GRU state over the episode instead, ``pnp.training.recurrent``). The
 reward stays the env's stage-wise reward (at fixed mu_j for the student).
 """
 from __future__ import annotations
@@ -138,7 +139,9 @@ def make_student_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: Transf
                         ) -> StudentModels:
     """A decentralised actor over ``STUDENT_OBS`` (its own ObsNorm), with the distribution
     family, parameter head and critic that :func:`make_models` builds for the teacher (its
-    teacher-shaped actor is dropped).
+    teacher-shaped actor is dropped). With ``recurrent_cells`` the actor is a
+    :class:`RecurrentStudentNet` (a GRU over the episode; ``stage_loss_coeff``: its
+    training-only stage read-out).
 
     The critic reads the clean observation and stage one-hot: an asymmetric critic is
     standard in teacher-student training and only used in training, so the deployed

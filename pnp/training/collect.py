@@ -12,7 +12,7 @@ from torchrl.envs import TransformedEnv
 from pnp.task import HL_DT
 from pnp.training.models import dist_from_params
 from pnp.training.keys import ACTION, EPISODE_STAGE, PEAK, REWARD, ROLL_IN, STAGE, STAGE_ONE_HOT
-from pnp.training.recurrent import carry_state
+from pnp.training.recurrent import carry_state, recurrent_net
 
 
 def seconds(steps) -> float:
@@ -57,7 +57,7 @@ def collect(env: TransformedEnv, policy: ProbabilisticTensorDictSequential, carr
     not hold it (its constructor even resets the env). With ``roll_in``, steps inside an
     episode's roll-in take the mean action and are flagged ``ROLL_IN``.
     """
-    out = []
+    out, recurrent = [], recurrent_net(policy) is not None
     # Sampled actions: ProbabilisticActor's default interaction type is deterministic.
     with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
         for _ in range(steps):
@@ -73,7 +73,8 @@ def collect(env: TransformedEnv, policy: ProbabilisticTensorDictSequential, carr
                 carried[ROLL_IN] = det.unsqueeze(-1)
             td, carried = env.step_and_maybe_reset(carried)
             out.append(td)
-            carry_state(td, carried)
+            if recurrent:
+                carry_state(td, carried)
     return torch.stack(out, -1), carried
 
 

@@ -1,6 +1,7 @@
 """One PPO update of a collected batch, and the KL-adaptive learning rate."""
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 
 import torch
@@ -32,10 +33,10 @@ def adapt_lr(optim: torch.optim.Optimizer, kl: float, ocfg: DictConfig) -> None:
             g["lr"] = min(g["lr"] * 1.5, float(ocfg.max_lr))
 
 
-def minibatch_source(batch: TensorDictBase, loss: PopArtMAPPOLoss, cfg: DictConfig) -> TensorDictBase:
+def minibatch_source(batch: TensorDictBase, recurrent: bool, cfg: DictConfig) -> TensorDictBase:
     """What minibatches are drawn from: frames ``[N * T]``, or for a recurrent actor whole
     segments ``[N, T]`` (one world's steps of this batch, in order: its GRU runs over them)."""
-    if recurrent_net(loss.actor_network) is not None:
+    if recurrent:
         if ROLL_IN in batch.keys():
             raise ValueError(f"collect.roll_in_share={cfg.collect.roll_in_share}: roll-ins are dropped frame by "
                              "frame, which a recurrent student's segments cannot lose; set it to 0")
@@ -53,13 +54,13 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     with torch.no_grad():
         loss.value_estimator(batch)
     loss.update_value_norm(batch)
-    flat = minibatch_source(batch, loss, cfg)
+    memory = recurrent_net(loss.actor_network)
+    flat = minibatch_source(batch, memory is not None, cfg)
     params = [p for g in optim.param_groups for p in g["params"]]
     floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
-    memory = recurrent_net(loss.actor_network)
     sums, n = defaultdict(float), 0
     rows = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
-    per_minibatch = max(1, int(cfg.collect.minibatch_size) // (flat.numel() // max(rows, 1)))
+    per_minibatch = max(1, int(cfg.collect.minibatch_size) // math.prod(flat.batch_size[1:]))  # rows of T steps
     for _ in range(int(cfg.collect.num_epochs) if rows else 0):
         for idx in torch.randperm(rows).split(per_minibatch):
             minibatch = flat[idx]

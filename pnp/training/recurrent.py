@@ -100,8 +100,7 @@ def init_state(td: TensorDictBase, actor) -> TensorDictBase:
 
 
 def carry_state(step: TensorDictBase, carried: TensorDictBase) -> TensorDictBase:
-    """The GRU state the policy wrote in ``step`` becomes ``carried``'s input (no-op for a
-    memoryless policy); an episode that restarted zeroes it on its first step itself."""
-    if HIDDEN_NEXT in step.keys(include_nested=True):
-        carried.set(HIDDEN, step.get(HIDDEN_NEXT))
-    return carried
+    """The GRU state a recurrent policy wrote in ``step`` becomes ``carried``'s input (the
+    caller asks :func:`recurrent_net` once, not every step); an episode that restarted
+    zeroes it on its first step itself."""
+    return carried.set(HIDDEN, step.get(HIDDEN_NEXT))

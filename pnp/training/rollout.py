@@ -39,7 +39,7 @@ from pnp.training.collect import seconds
 from pnp.training.config import KinematicOptions, migrate
 from pnp.training.keys import ACTION, STAGE
 from pnp.training.models import ObsNorm, dist_from_params, fold_constant_inputs, make_models
-from pnp.training.recurrent import carry_state, init_state
+from pnp.training.recurrent import carry_state, init_state, recurrent_net
 from pnp.training.tasks import make_env
 
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
@@ -177,12 +177,13 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
     peak = torch.zeros(n_worlds, dtype=torch.long)
     records, step = [], 0
     bar = tqdm(total=trials, disable=not progress, desc="trials")
-    td = init_state(env.reset(), actor)
+    td, recurrent = init_state(env.reset(), actor), recurrent_net(actor) is not None
     with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
         while bool((count < per_world).any()):
             td = _act(actor, td, groups)
             out, td = env.step_and_maybe_reset(td)
-            carry_state(out, td)
+            if recurrent:
+                carry_state(out, td)
             nxt, step = out["next"], step + 1
             if hook is not None:
                 hook.after_step(env, nxt)

@@ -39,7 +39,7 @@ from pnp.locomotion import (
 )
 from pnp.robot import ARM_DEFAULT, ARM_SPEED, FINGER_STROKE
 
-_SETTINGS = ("command_low", "command_high", "command_resample_s", "stand_share", "arm_resample_s", "payload_mass",
+SETTINGS = ("command_low", "command_high", "command_resample_s", "stand_share", "arm_resample_s", "payload_mass",
              "push_interval_s", "push_speed", "fall_height", "fall_tilt")
 
 
@@ -85,7 +85,7 @@ class LocomotionEnv(RobotEnvBase):
         self._reset_worlds(torch.arange(N))
 
     def _read_settings(self, s) -> None:
-        missing = [k for k in _SETTINGS if not hasattr(s, k)]
+        missing = [k for k in SETTINGS if not hasattr(s, k)]
         if missing:
             raise ValueError(f"locomotion settings lack {missing} (see pnp.training.config.LocomotionConfig)")
         self.command_low, self.command_high = tuple(map(float, s.command_low)), tuple(map(float, s.command_high))

@@ -4,10 +4,13 @@ For each robot count and batch: record a few HL steps of random actions through
 ``PnPEnv.step`` (TorchRL EnvBase), then time (a) the env replaying them from the same
 start state and (b) raw ``mujoco.rollout`` on the same models, start states and control
 trajectories (the physics the env did, without IK, observations, rewards or TorchRL).
-``ratio = raw physics time / env step time`` (1.0: the env adds nothing).
+``ratio = raw physics time / env step time`` (1.0: the env adds nothing). With
+``--low-level-checkpoint`` it also times the env on the learned low level against the ideal
+one on the same actions (``learned_over_ideal_speed``).
 
     python recipes/benchmark.py                      # writes results/benchmark_env.json
     python recipes/benchmark.py --batches 64 --steps 5 --out /tmp/b.json
+    python recipes/benchmark.py --robots 1 --batches 64 256 --low-level-checkpoint runs/loco
 """
 from __future__ import annotations
 
@@ -70,6 +73,42 @@ def bench_env(robots: int, batch: int, steps: int, repeats: int, nthread: int | 
     }
 
 
+def bench_low_level(checkpoint: str, robots: int, batch: int, steps: int, repeats: int, nthread: int | None) -> dict:
+    """The PnP env on the ideal low level against the learned one (legs walked by the leg
+    policy of ``checkpoint``), the same random actions, timed interleaved."""
+    from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+    from pnp.legged_backend import LeggedMujocoBackend
+    from pnp.training.low_level import load_locomotion_policy
+
+    leg_policy, policy_t = load_locomotion_policy(checkpoint), []
+
+    def timed(obs):
+        t = time.perf_counter()
+        out = leg_policy(obs)
+        policy_t.append(time.perf_counter() - t)
+        return out
+
+    box = (SINGLE_ROBOT_BOXES if robots == 1 else DUAL_ROBOT_BOXES)[0]
+    envs = {"ideal": PnPEnv(num_worlds=batch, num_robots=robots, seed=0, nthread=nthread),
+            "learned": PnPEnv(num_worlds=batch, num_robots=robots, seed=0, nthread=nthread,
+                              backend=LeggedMujocoBackend(batch, robots, box, timed, nthread=nthread))}
+    acts = _actions(envs["ideal"], steps, seed=batch + robots)
+    times = {k: [] for k in envs}
+    for _ in range(repeats):  # interleaved, so drift in machine load hits both alike
+        for k, e in envs.items():
+            td = e.reset()
+            policy_t.clear()
+            t = time.perf_counter()
+            _run_env(e, td, acts)
+            times[k].append(time.perf_counter() - t)
+    for e in envs.values():
+        e.close()
+    ti, tl = (statistics.median(times[k]) / steps for k in ("ideal", "learned"))
+    return {"robots": robots, "batch": batch, "ideal_env_steps_per_s": batch / ti, "learned_env_steps_per_s": batch / tl,
+            "ideal_env_step_ms": 1e3 * ti, "learned_env_step_ms": 1e3 * tl,
+            "leg_policy_ms_per_env_step": 1e3 * sum(policy_t) / steps, "learned_over_ideal_speed": ti / tl}
+
+
 def bench_kinematic():
     from bench_kinematic import bench_kinematic as run  # needs pnp.kinematic
 
@@ -93,6 +132,8 @@ def main(argv=None):
     p.add_argument("--nthread", type=int, default=None, help="physics threads (default: all cores)")
     p.add_argument("--kinematic", action="store_true", help="also benchmark the kinematic backend "
                    "(writes benchmark_kinematic.json beside --out)")
+    p.add_argument("--low-level-checkpoint", default=None, help="also time the learned low level (a task=locomotion "
+                   "run) against the ideal one; writes benchmark_low_level.json beside --out")
     p.add_argument("--out", default="results/benchmark_env.json")
     args = p.parse_args(argv)
     t0 = time.time()
@@ -109,6 +150,23 @@ def main(argv=None):
     with open(args.out, "w") as f:
         json.dump(out, f, indent=2)
     print(f"wrote {args.out}")
+    if args.low_level_checkpoint:
+        t0 = time.time()
+        lrows = []
+        for robots in args.robots:
+            for batch in args.batches:
+                r = bench_low_level(args.low_level_checkpoint, robots, batch, args.steps, args.repeats, args.nthread)
+                lrows.append(r)
+                print(f"robots={robots} batch={batch:5d}  ideal {r['ideal_env_steps_per_s']:8.0f} steps/s  learned "
+                      f"{r['learned_env_steps_per_s']:8.0f} steps/s (leg policy {r['leg_policy_ms_per_env_step']:.1f} ms "
+                      f"of {r['learned_env_step_ms']:.1f})  learned/ideal speed {r['learned_over_ideal_speed']:.2f}", flush=True)
+        lout = {"rows": lrows, "low_level_checkpoint": args.low_level_checkpoint,
+                **provenance(seed=0, wall_s=round(time.time() - t0, 1), torch_threads=torch.get_num_threads(),
+                             steps_per_measure=args.steps, repeats=args.repeats)}
+        lpath = os.path.join(os.path.dirname(args.out) or ".", "benchmark_low_level.json")
+        with open(lpath, "w") as f:
+            json.dump(lout, f, indent=2)
+        print(f"wrote {lpath}")
     if args.kinematic:
         t0 = time.time()
         krows = bench_kinematic()

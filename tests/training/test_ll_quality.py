@@ -17,6 +17,7 @@ from pnp.locomotion import STAND
 from tests.training._tiny import ROOT, compose_cfg
 
 sys.path.insert(0, str(ROOT / "recipes"))
+import benchmark as benchmark_recipe  # noqa: E402
 import ll_quality as ll_quality_recipe  # noqa: E402
 
 
@@ -77,7 +78,7 @@ def test_settings_and_grid():
     assert len(grid) == 9 + 2 and [0.0, 0.5, 0.0] in grid and [1.0, 0.0, -1.0] in grid
 
 
-def test_the_recipe_writes_every_measurement(tmp_path):
+def test_the_recipes_measure_a_leg_policy(tmp_path):
     from pnp.training.trainer import train
     from tests.training.test_low_level import MUJOCO_TINY
 
@@ -93,3 +94,6 @@ def test_the_recipe_writes_every_measurement(tmp_path):
     assert len(r["velocity_tracking"]["per_command"]) == 4 + 2
     assert set(r["ee_tracking"]["+0.00, +0.00, +0.00"]) == {"ideal", "learned"}
     assert r["checkpoint_iteration"] == 1 and "commit" in r
+    row = benchmark_recipe.bench_low_level(str(run), robots=1, batch=2, steps=2, repeats=1, nthread=1)
+    assert row["learned_env_steps_per_s"] > 0 and row["leg_policy_ms_per_env_step"] > 0
+    assert row["learned_over_ideal_speed"] == pytest.approx(row["ideal_env_step_ms"] / row["learned_env_step_ms"])

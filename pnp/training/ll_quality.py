@@ -30,7 +30,7 @@ _LO, _HI = (torch.tensor(leg_ranges()[:, i], dtype=torch.float32) for i in (0, 1
 
 
 class Saturation:
-    """Counts leg joint-steps at the torque limit and at a range end."""
+    """Counts leg joint-steps at the torque limit (the servo PD at the policy step's start) and at a range end."""
 
     def __init__(self):
         self.torque = self.limit = self.total = 0

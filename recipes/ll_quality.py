@@ -80,24 +80,24 @@ def measure(cfg: DictConfig) -> dict:
     pushes = push_recovery(loco_env(push_interval_s=float(p.interval_s), push_speed=list(p.speed),
                                     payload_mass=list(p.payload_kg)), policy, int(p.episodes), float(p.seconds))
     box = SINGLE_ROBOT_BOXES[0]
+    backends = {"ideal": lambda: MujocoBackend(int(e.worlds), 1, box, nthread=nthread),
+                "learned": lambda: LeggedMujocoBackend(int(e.worlds), 1, box, policy, nthread=nthread)}
     tracking = {}
     for cmd in e.base_commands:
         cmd = [float(x) for x in cmd]
         both = {}
-        for name in ("ideal", "learned"):
-            backend = (MujocoBackend(int(e.worlds), 1, box, nthread=nthread) if name == "ideal"
-                       else LeggedMujocoBackend(int(e.worlds), 1, box, policy, nthread=nthread))
+        for name, make in backends.items():
+            backend = make()
             try:
                 both[name] = ee_tracking(backend, int(e.switches), tuple(e.delays_s), float(e.hold_s), cmd, seed)
             finally:
                 backend.close()
         tracking[", ".join(f"{x:+.2f}" for x in cmd)] = both
     result = {"velocity_tracking": velocity, "ee_tracking": tracking, "pushes": pushes,
-              "settings": OmegaConf.to_container(cfg), "locomotion": {k: getattr(base, k) for k in base},
+              "settings": OmegaConf.to_container(cfg), "locomotion": OmegaConf.to_container(base),
               "checkpoint": str(path), "checkpoint_iteration": int(ckpt["counters"]["iteration"]),
               "env_steps": int(ckpt["counters"]["frames"]), "seed": seed, "wall_s": time.monotonic() - t0,
               **provenance()}
-    result["locomotion"] = OmegaConf.to_container(base) if OmegaConf.is_config(base) else result["locomotion"]
     out = Path(cfg.out) if cfg.out else path.parent / "ll_quality.json"
     return write_result(result, out, table_md(result))
 

@@ -16,6 +16,8 @@ A resumed run continues in its checkpoint's folder, bit for bit. Keys and defaul
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
@@ -35,7 +37,16 @@ def main(cfg: DictConfig) -> None:
         if not run_pipeline(cfg)["finished"]:
             raise SystemExit(f"stopped before the pipeline's end; the same command resumes in {cfg.out_dir}")
     else:
-        train(cfg)
+        train(resume_in_place(cfg))
+
+
+def resume_in_place(cfg: DictConfig) -> DictConfig:
+    """Rerunning the same command continues its run, as pipelines do: an ``out_dir`` that
+    holds a checkpoint is resumed, never restarted over (which would overwrite its metrics)."""
+    ckpt = Path(cfg.out_dir) / "checkpoint.pt"
+    if not cfg.resume and ckpt.exists():
+        cfg.resume = str(ckpt)
+    return cfg
 
 
 if __name__ == "__main__":

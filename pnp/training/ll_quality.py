@@ -19,7 +19,7 @@ from pnp.backend import Layout, MujocoBackend
 from pnp.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import SETTINGS
 from pnp.kinematics import clamp_reach
-from pnp.locomotion import POLICY_DT, joint_targets, leg_torques
+from pnp.locomotion import LOCO_OBS_FIELDS, POLICY_DT, STAND, joint_targets, leg_torques
 from pnp.robot import LEG_TORQUE, leg_ranges
 from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT, yaw_rotation
 
@@ -49,13 +49,12 @@ class Saturation:
 
 
 def _act(env, policy: LegPolicy, td):
-    """One policy step of ``env``; returns (next tensordict, leg action [N, 12], q, qd before the step)."""
+    """One policy step of ``env``; returns (step tensordict, leg action [N, 12], leg q and qd
+    [N, 12] the step started from, read off the observation the policy acted on)."""
     obs = td.get(("agents", "observation"))[:, 0]
-    _, q, qd, _ = env._read()
     action = policy(obs).clamp(-1.0, 1.0)
-    td = td.set(("agents", "action"), action.unsqueeze(1))
-    out = env.step(td)
-    return out, action, q, qd
+    out = env.step(td.set(("agents", "action"), action.unsqueeze(1)))
+    return out, action, obs[:, LOCO_OBS_FIELDS["leg_q"]] + STAND, obs[:, LOCO_OBS_FIELDS["leg_qd"]]
 
 
 def velocity_tracking(make_env, policy: LegPolicy, commands, repeats: int = 4, settle_s: float = 2.0,
@@ -80,9 +79,9 @@ def velocity_tracking(make_env, policy: LegPolicy, commands, repeats: int = 4, s
             fell |= out.get(("next", "terminated"))[:, 0]
             sat.add(action, q, qd, ~fell)
             if t >= settle:
-                base, _, _, _ = env._read()
-                lin_err += (base["lin_vel"][:, :2] - cmd[:, :2]).norm(dim=-1)
-                yaw_err += (base["ang_vel"][:, 2] - cmd[:, 2]).abs()
+                nxt = out.get(("next", "agents", "observation"))[:, 0]
+                lin_err += (nxt[:, LOCO_OBS_FIELDS["base_lin_vel"]][:, :2] - cmd[:, :2]).norm(dim=-1)
+                yaw_err += (nxt[:, LOCO_OBS_FIELDS["base_ang_vel"]][:, 2] - cmd[:, 2]).abs()
             td = out.get("next")
             if out.get(("next", "truncated")).any():
                 raise RuntimeError("an episode was truncated during velocity tracking: raise max_episode_steps")
@@ -161,13 +160,13 @@ def ee_tracking(backend: MujocoBackend, switches: int, delays_s=(0.1, 0.3, 1.0),
     action[..., :3] = torch.tensor(base_command, dtype=torch.float32)
     errors = {d: [] for d in delays_s}
     heights = []
-    for _ in range(switches + 1):  # the first hold only settles
+    for switch in range(switches + 1):  # the first hold only settles
         ee = lo + (hi - lo) * torch.rand(n, 4, generator=g)
         action[:, 0, 3:7] = ee
         for t in range(1, hold + 1):
             if backend.step(action).any():
                 raise RuntimeError("physics diverged during the EE tracking test")
-            if _ and t in delays:
+            if switch and t in delays:
                 s = backend.state(torch.zeros(n, 2), torch.ones(n), torch.zeros(n, 1))
                 base = s.base[:, 0]
                 origin = torch.cat([base[:, :2], s.base_z], -1)

@@ -6,12 +6,16 @@
 Every method trains ``experiment=table1_<method>`` (the same phases and frame budget,
 ``recipes/config/experiment/table1_common.yaml``) with each seed into
 ``runs_dir/<method>_s<seed>``, one training at a time; a finished run is skipped and a
-stopped one resumes (the pipeline's own resume). Each final policy then runs
-``eval.trials`` deterministic episodes (cached beside the run). Writes ``out``: per method
-and seed the frames and wall time until the training mean end stage and success rate reach
-their thresholds (null if never), the evaluation, and the ratios against the best
-baseline; and beside it PNGs of the mean end-of-episode stage (paper Fig. 6) and the
-training success rate vs frames, mean over seeds with their min-max band.
+stopped one resumes (the pipeline's own resume). Every seed runs the kinematic phases (those
+before the first MuJoCo phase); the seeds in ``mujoco_seeds`` go on through the MuJoCo
+phases, since a MuJoCo fine-tune that learns costs about an hour here. Each seed's kinematic
+policy runs ``eval_kinematic.trials`` deterministic episodes and each MuJoCo seed's final
+policy ``eval.trials`` (Table I; both cached beside the run). Writes ``out``: per method and
+seed the frames and wall time until the training mean end stage and success rate reach
+their thresholds over the kinematic phases (null if never), the evaluations, and the ratios
+against the best baseline; and beside it PNGs of the mean end-of-episode stage (paper Fig. 6)
+and the training success rate vs frames over the kinematic phases, mean over seeds with
+their min-max band.
 
 Bendikas et al.'s sub-tasks before the last end their episodes at S_{k+1} and count that as
 success: their iterations are left out of the thresholds and of the success curve (the
@@ -56,13 +60,34 @@ CURVES = {"end_stage": "mean end-of-episode stage", "success_rate": "training su
 EXITS = {1: "success", 2: "frames"}  # pnp.training.sequential's subtask_exit codes
 
 
-def train_config(cfg: DictConfig, method: str, seed: int) -> DictConfig:
-    run = Path(cfg.runs_dir) / f"{method}_s{seed}"
-    overrides = [f"experiment=table1_{method}", *cfg.train, f"seed={seed}", f"out_dir={run}"]
+def _compose(overrides: list[str]) -> DictConfig:
     if GlobalHydra.instance().is_initialized():  # under @hydra.main: same config folder
         return compose("train", overrides=overrides)
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         return compose("train", overrides=overrides)
+
+
+def kinematic_phases(tcfg: DictConfig) -> list[str]:
+    """The pipeline's phases before its first MuJoCo phase (all of them if it has none)."""
+    names = []
+    for name, phase in pipeline_phases(tcfg):
+        if phase.overrides.get("env.backend", tcfg.env.backend) == "mujoco":
+            break
+        names.append(name)
+    if not names:
+        raise ValueError(f"experiment pipeline {list(tcfg.pipeline)} starts on MuJoCo: the comparison needs kinematic phases first")
+    return names
+
+
+def train_config(cfg: DictConfig, method: str, seed: int, kinematic_only: bool = False) -> tuple[DictConfig, DictConfig]:
+    """The run's config (the kinematic phases only unless ``seed`` is in ``cfg.mujoco_seeds``)
+    and the full pipeline's (for the budget)."""
+    run = Path(cfg.runs_dir) / f"{method}_s{seed}"
+    overrides = [f"experiment=table1_{method}", *cfg.train, f"seed={seed}", f"out_dir={run}"]
+    full = _compose(overrides)
+    if seed in cfg.mujoco_seeds and not kinematic_only:
+        return full, full
+    return _compose([*overrides, f"pipeline=[{','.join(kinematic_phases(full))}]"]), full
 
 
 def budget_frames(tcfg: DictConfig) -> int:
@@ -120,16 +145,16 @@ def subtask_history(rows: list[dict]) -> list[dict]:
             for r in rows if r.get("subtask_exit", 0) > 0]
 
 
-def final_checkpoint(run: Path) -> Path:
+def phase_checkpoint(run: Path, name: str) -> Path:
     phases = load_state(run)
-    return phase_dir(run, len(phases) - 1, phases[-1]["name"]) / "checkpoint.pt"
+    index = [p["name"] for p in phases].index(name)
+    return phase_dir(run, index, name) / "checkpoint.pt"
 
 
-def evaluate(run: Path, ecfg: DictConfig) -> dict:
-    """The run's final policy over ``ecfg.trials`` deterministic episodes; cached in the run folder."""
-    ckpt = final_checkpoint(run)
+def evaluate(run: Path, ckpt: Path, ecfg: DictConfig, name: str) -> dict:
+    """``ckpt`` over ``ecfg.trials`` deterministic episodes; cached in the run folder as ``table1_<name>.json``."""
     settings = {**OmegaConf.to_container(ecfg, resolve=True), "checkpoint": str(ckpt), "mtime": ckpt.stat().st_mtime}
-    cache = run / f"table1_eval_{ecfg.backend}.json"
+    cache = run / f"table1_{name}.json"
     if cache.is_file() and json.loads(cache.read_text())["settings"] == settings:
         return json.loads(cache.read_text())["result"]
     overrides = {k: ecfg[k] for k in ("backend", "nthread", "start_range", "max_episode_steps")}
@@ -232,10 +257,44 @@ def method_parameters(tcfg: DictConfig) -> dict[str, int]:
     return parameter_count(models.actor_net, models.critic_net)
 
 
-def train_command(cfg: DictConfig, method: str) -> str:
+def train_command(cfg: DictConfig, method: str, kinematic: list[str]) -> str:
     extra = "".join(f" {o}" for o in cfg.train)
     run = f"{cfg.runs_dir}/{method}_s<seed>"
-    return f"python recipes/train.py experiment=table1_{method}{extra} seed=<seed> out_dir={run}"
+    return (f"python recipes/train.py experiment=table1_{method}{extra} seed=<seed> out_dir={run}"
+            f" (seeds not in {list(cfg.mujoco_seeds)}: + pipeline=[{','.join(kinematic)}])")
+
+
+def summary_over_seeds(evals: list[dict], trials: int, backend: str) -> dict:
+    t_mean, t_std = pooled_times(evals)
+    rates = [e["success_rate"] for e in evals]
+    return {"trials": trials, "backend": backend, "seeds_evaluated": len(evals),
+            "success_rate": float(np.mean(rates)) if rates else None,
+            "success_rate_std_over_seeds": float(np.std(rates)) if rates else None,
+            "completion_time_mean_s": t_mean, "completion_time_std_s": t_std}
+
+
+def train(tcfg: DictConfig, method: str, seed: int) -> None:
+    if not run_pipeline(tcfg)["finished"]:
+        raise SystemExit(f"stopped during {method} seed {seed} (a signal or the wall-time limit); rerun to resume")
+
+
+def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict], DictConfig]:
+    """Train (or resume, or skip) one run and evaluate it: its record, its kinematic rows, its full config."""
+    tcfg, full = train_config(cfg, method, seed)
+    run = Path(tcfg.out_dir)
+    train(tcfg, method, seed)
+    kin = kinematic_phases(full)
+    rows = [r for r in run_rows(run) if r["phase"] in kin]
+    record = {**efficiency(rows, cfg.thresholds, int(cfg.window)), "wall_s": rows[-1]["wall_s"],
+              "frames": rows[-1]["frames"], "run": str(run),
+              "eval_kinematic": evaluate(run, phase_checkpoint(run, kin[-1]), cfg.eval_kinematic, "eval_kinematic")}
+    if seed in cfg.mujoco_seeds:
+        phases = load_state(run)
+        record["eval"] = evaluate(run, phase_checkpoint(run, phases[-1]["name"]), cfg.eval, "eval")
+        record["wall_s_all_phases"] = sum(p["wall_s"] for p in phases)
+    if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
+        record["subtasks"] = subtask_history(rows)
+    return record, rows, full
 
 
 def run_table1(cfg: DictConfig) -> dict:
@@ -244,43 +303,43 @@ def run_table1(cfg: DictConfig) -> dict:
     t0, prov = time.monotonic(), provenance()  # before any output: the tree is still clean
     if cfg.ours not in cfg.methods:
         raise ValueError(f"ours={cfg.ours!r} is not among methods {list(cfg.methods)}")
+    if not set(cfg.mujoco_seeds) <= set(cfg.seeds):
+        raise ValueError(f"mujoco_seeds={list(cfg.mujoco_seeds)} must be among seeds={list(cfg.seeds)}")
+    for method in cfg.methods:  # every run's kinematic phases first: Fig. 6 and the efficiency come from them
+        for seed in cfg.seeds:
+            tcfg = train_config(cfg, method, int(seed), kinematic_only=True)[0]
+            if len(load_state(Path(tcfg.out_dir))) < len(tcfg.pipeline):  # a MuJoCo seed may be past them
+                train(tcfg, method, int(seed))
     methods, curves, budgets, phases = {}, {}, {}, []
     for method in cfg.methods:
-        seeds, evals, curves[method] = {}, [], {}
+        seeds, curves[method] = {}, {}
         for seed in cfg.seeds:
-            tcfg = train_config(cfg, method, int(seed))
-            budgets[method] = budget_frames(tcfg)
-            run = Path(tcfg.out_dir)
-            if not run_pipeline(tcfg)["finished"]:
-                raise SystemExit(f"stopped during {method} seed {seed} (a signal or the wall-time limit); "
-                                 "rerun to resume")
-            rows = curves[method][int(seed)] = run_rows(run)
-            phases = phases or [(sum(p["frames"] for p in load_state(run)[:i]), p["name"])
-                                for i, p in enumerate(load_state(run))]
-            ev = evaluate(run, cfg.eval)
-            evals.append(ev)
-            seeds[str(seed)] = {**efficiency(rows, cfg.thresholds, int(cfg.window)), "wall_s": rows[-1]["wall_s"],
-                                "frames": rows[-1]["frames"], "eval": ev, "run": str(run)}
-            if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
-                seeds[str(seed)]["subtasks"] = subtask_history(rows)
+            seeds[str(seed)], curves[method][int(seed)], full = run_seed(cfg, method, int(seed))
+            kin = kinematic_phases(full)
+            budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
+            phases = phases or [(sum(p["frames"] for p in load_state(Path(full.out_dir))[:i]), p["name"])
+                                for i, p in enumerate(load_state(Path(full.out_dir))) if p["name"] in kin]
         if len(set(budgets.values())) > 1:
-            raise ValueError(f"the methods must share one frame budget; got {budgets}")
-        t_mean, t_std = pooled_times(evals)
+            raise ValueError(f"the methods must share one frame budget (all phases, kinematic ones); got {budgets}")
+        table = summary_over_seeds([s["eval"] for s in seeds.values() if "eval" in s], int(cfg.eval.trials),
+                                   str(cfg.eval.backend))
         methods[method] = {
-            "seeds": seeds, "trials": int(cfg.eval.trials), "backend": str(cfg.eval.backend),
-            "success_rate": float(np.mean([e["success_rate"] for e in evals])),
-            "success_rate_std_over_seeds": float(np.std([e["success_rate"] for e in evals])),
-            "completion_time_mean_s": t_mean, "completion_time_std_s": t_std, "budget_frames": budgets[method],
-            "command": train_command(cfg, method), "parameters": method_parameters(tcfg),
+            "seeds": seeds, **table, "mujoco_seeds": list(cfg.mujoco_seeds),
+            "kinematic": summary_over_seeds([s["eval_kinematic"] for s in seeds.values()],
+                                            int(cfg.eval_kinematic.trials), str(cfg.eval_kinematic.backend)),
+            "budget_frames": budgets[method][0], "kinematic_budget_frames": budgets[method][1],
+            "command": train_command(cfg, method, kinematic_phases(full)), "parameters": method_parameters(full),
         }
     keys = [f"frames_to_{label(m, float(v))}" for m, v in cfg.thresholds.items()]
     r = ratios(methods, cfg.ours, keys)
-    pngs = plot_curves(curves, next(iter(budgets.values())), int(cfg.curve_bins), phases, out)
+    r_kin = ratios({m: {**v["kinematic"], "seeds": v["seeds"]} for m, v in methods.items()}, cfg.ours, keys)
+    pngs = plot_curves(curves, next(iter(budgets.values()))[1], int(cfg.curve_bins), phases, out)
     doc = {"methods": methods, "efficiency_ratio": r["efficiency"].get(keys[0]), "efficiency_ratios": r["efficiency"],
-           "execution_time_ratio": r["execution_time"], "best_baselines": r["best_baseline"], "ours": cfg.ours,
-           "thresholds": OmegaConf.to_container(cfg.thresholds), "window_iterations": int(cfg.window),
-           "eval": OmegaConf.to_container(cfg.eval), "plots": [str(p) for p in pngs],
-           "wall_s": time.monotonic() - t0, **prov}
+           "execution_time_ratio": r["execution_time"], "execution_time_ratio_kinematic": r_kin["execution_time"],
+           "best_baselines": {**r["best_baseline"], "execution_time_kinematic": r_kin["best_baseline"]["execution_time"]},
+           "ours": cfg.ours, "thresholds": OmegaConf.to_container(cfg.thresholds), "window_iterations": int(cfg.window),
+           "eval": OmegaConf.to_container(cfg.eval), "eval_kinematic": OmegaConf.to_container(cfg.eval_kinematic),
+           "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
     return doc
 
@@ -289,7 +348,9 @@ def run_table1(cfg: DictConfig) -> dict:
 def main(cfg: DictConfig) -> None:
     doc = run_table1(cfg)
     for method, m in doc["methods"].items():
-        print(method, f"success {m['success_rate']:.3f}", f"time {m['completion_time_mean_s']}",
+        kin = m["kinematic"]
+        print(method, f"MuJoCo success {m['success_rate']} time {m['completion_time_mean_s']}",
+              f"kinematic success {kin['success_rate']:.3f} time {kin['completion_time_mean_s']}",
               {s: {k: v for k, v in r.items() if k.startswith("frames_to")} for s, r in m["seeds"].items()})
     print(f"efficiency ratio {doc['efficiency_ratio']}, execution time ratio {doc['execution_time_ratio']}")
     print(f"wrote {cfg.out}")

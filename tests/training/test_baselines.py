@@ -16,6 +16,7 @@ from pnp.terms import REWARD_TABLE, REWARD_TERMS, STAGE_GATES, TERM_STAGE
 from pnp.training.baselines import use_baseline_schedule
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.keys import OBS, STAGE_ONE_HOT
+from pnp.training.pipeline import load_state
 from pnp.training.models import AgentNet, ObsNorm, fold_constant_inputs, make_models
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.sequential import SequentialSchedule
@@ -233,7 +234,8 @@ def _table1_cfg(tmp_path, methods, seeds, *phases):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("table1", overrides=[f"methods={methods}", f"seeds={seeds}", f"runs_dir={tmp_path / 'runs'}",
                                            f"out={tmp_path / 'table1.json'}", "eval.trials=3", "eval.backend=kinematic",
-                                           "eval.num_worlds=3", "eval.max_episode_steps=5", "curve_bins=4"])
+                                           "eval.num_worlds=3", "eval.max_episode_steps=5", "eval_kinematic.trials=3",
+                                           "eval_kinematic.num_worlds=3", "eval_kinematic.max_episode_steps=5", "curve_bins=4"])
     cfg.train = [t for t in TINY if not t.startswith("backend=")] + ["baseline.bendikas.max_frames=40", *phases]
     return cfg
 
@@ -252,13 +254,22 @@ def _check_form(doc, methods, seeds):
 
 
 def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
-    cfg = _table1_cfg(tmp_path, "[dynamic,bendikas]", "[0]", "pipeline=[kin]", "++phases={kin: {max_frames: 80}}")
+    # seed 0 goes on to the MuJoCo phase and its evaluation, seed 1 stops after the kinematic one
+    cfg = _table1_cfg(tmp_path, "[dynamic,bendikas]", "[0,1]", "pipeline=[kin,mj]",
+                      "++phases={kin: {max_frames: 80}, mj: {max_frames: 40, overrides: {env.backend: mujoco}}}")
+    cfg.eval.backend = "mujoco"
     doc = table1.run_table1(cfg)
     saved = json.loads((tmp_path / "table1.json").read_text())
-    _check_form(saved, ["dynamic", "bendikas"], [0])
+    _check_form(saved, ["dynamic", "bendikas"], [0, 1])
     m = saved["methods"]["bendikas"]
-    assert m["budget_frames"] == 80 and m["trials"] == 3 and m["backend"] == "kinematic"
-    assert [h["exit"] for h in m["seeds"]["0"]["subtasks"]] == ["frames", "frames"]
+    assert m["budget_frames"] == 120 and m["kinematic_budget_frames"] == 80
+    assert m["trials"] == 3 and m["backend"] == "mujoco" and m["seeds_evaluated"] == 1
+    assert m["kinematic"]["backend"] == "kinematic" and m["kinematic"]["seeds_evaluated"] == 2
+    assert "eval" in m["seeds"]["0"] and "eval" not in m["seeds"]["1"]
+    assert [p["name"] for p in load_state(tmp_path / "runs" / "bendikas_s0")] == ["kin", "mj"]
+    assert [p["name"] for p in load_state(tmp_path / "runs" / "bendikas_s1")] == ["kin"]
+    assert m["seeds"]["1"]["frames"] == 80  # efficiency and curves over the kinematic phases only
+    assert [h["exit"] for h in m["seeds"]["1"]["subtasks"]] == ["frames", "frames"]
     assert m["parameters"]["inference"] * 7 == m["parameters"]["actor"]
     for png in ("table1_end_stage.png", "table1_success_rate.png"):
         assert (tmp_path / png).stat().st_size > 0

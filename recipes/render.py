@@ -4,6 +4,7 @@
     python recipes/render.py --out results/scripted_pnp.gif --seed 3 --every 2
     python recipes/render.py --robots 2 --out results/scripted_dual_pnp.gif --every 3
     python recipes/render.py --checkpoint results/train_single/checkpoint_mujoco.pt --out results/single_pnp.gif
+    python recipes/render.py --checkpoint <pnp run> --low-level-checkpoint runs/loco --out runs/walking.gif  # on legs
 
 With ``--checkpoint`` the trained teacher acts with its deterministic (mean) action on the
 MuJoCo backend (the robot count is the checkpoint's); up to ``--tries`` episodes (layouts
@@ -71,6 +72,8 @@ def main(argv=None):
     p.add_argument("--checkpoint", default=None, help="a trained teacher (run folder or .pt); default: scripted")
     p.add_argument("--tries", type=int, default=10, help="with --checkpoint: episodes tried until a success")
     p.add_argument("--max-steps", type=int, default=None, help="cut the episode short (default: 45 s)")
+    p.add_argument("--low-level-checkpoint", default=None,
+                   help="with --checkpoint: a task=locomotion run; the teacher acts on its walking legs")
     args = p.parse_args(argv)
     if args.robots not in (1, 2):
         raise SystemExit(f"--robots must be 1 or 2, got {args.robots}")
@@ -91,7 +94,8 @@ def main(argv=None):
 
 def _render_teacher(args) -> dict:
     path = resolve_checkpoint(args.checkpoint, "runs")
-    pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1)
+    legs = {"low_level": "learned", "low_level_checkpoint": args.low_level_checkpoint} if args.low_level_checkpoint else {}
+    pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1, **legs)
     env, actor, ckpt, folded = pol.env, pol.actor, pol.ckpt, pol.folded
     for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
@@ -100,7 +104,8 @@ def _render_teacher(args) -> dict:
             break
     env.close()
     info.update(provenance(seed=args.seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
-                           episodes_tried=k + 1, folded_inputs=folded))
+                           episodes_tried=k + 1, folded_inputs=folded, low_level=str(pol.cfg.env.low_level),
+                           low_level_checkpoint=args.low_level_checkpoint))
     return info
 
 

@@ -1,14 +1,17 @@
 """env.low_level=learned: a task=locomotion checkpoint walks the legs of the PnP env."""
+import sys
+
 import pytest
 import torch
 
+from pnp.envs.pnp_env import PnPEnv
 from pnp.legged_backend import LeggedMujocoBackend
 from pnp.locomotion import LOCO_OBS_DIM
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.tasks import make_env
 from pnp.training.trainer import train
-from tests.training._tiny import TINY, compose_cfg
+from tests.training._tiny import ROOT, TINY, compose_cfg
 
 MUJOCO_TINY = [o for o in TINY if not o.startswith("backend=")]
 
@@ -67,3 +70,21 @@ def test_wrong_low_level_settings_are_refused(locomotion_run, pnp_run):
         env_of("task=ee_tracking", "backend=mujoco", "env.low_level=learned")
     with pytest.raises(ValueError, match="trained on env.task='pnp', not locomotion"):
         load_locomotion_policy(str(pnp_run))
+
+
+def test_a_teacher_is_rendered_walking(locomotion_run, pnp_run, tmp_path):
+    """recipes/render.py --low-level-checkpoint: the GIF of a pick-and-place on legs."""
+    pytest.importorskip("imageio")
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import render as render_recipe
+
+    try:
+        from pnp.render import WorldRenderer
+
+        WorldRenderer(PnPEnv(num_worlds=1, nthread=1).backend, 0, width=32, height=32).close()
+    except Exception as e:  # noqa: BLE001 - any GL failure means no offscreen context here
+        pytest.skip(f"no offscreen GL context: {e}")
+    out = tmp_path / "walking.gif"
+    info = render_recipe.main(["--checkpoint", str(pnp_run), "--low-level-checkpoint", str(locomotion_run),
+                               "--out", str(out), "--tries", "1", "--max-steps", "3"])
+    assert out.stat().st_size > 0 and info["low_level"] == "learned" and info["steps"] == 3

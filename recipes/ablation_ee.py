@@ -1,15 +1,19 @@
 """The paper's curriculum ablation: 4-stage EE tracking, dynamic vs Liu et al. (max) and (min).
 
-    python recipes/ablation_ee.py                          # 3 schedules x 3 seeds, 300 iterations each
+    python recipes/ablation_ee.py                          # 4 methods x 3 seeds, 1000 iterations each
     python recipes/ablation_ee.py seeds=[0] iterations=50  # a quicker look
 
 Every run trains ``recipes/train.py`` on ``env.task=ee_tracking`` with the same budget
-(``iterations`` x ``collect.frames_per_batch`` frames) into ``runs_dir/<schedule>_s<seed>``;
-an existing run resumes (or is skipped when complete), so the ablation survives restarts.
+(``iterations`` x ``collect.frames_per_batch`` frames) into ``runs_dir/<method>_s<seed>``;
+an existing run resumes (or is skipped when complete; a larger ``iterations`` trains it on),
+so the ablation survives restarts. A method is a schedule (``schedules``) or a named
+variant (``variants``: a schedule plus overrides, e.g. ``curriculum.completed_floor``).
 Then each policy runs ``eval_trials`` deterministic episodes. Writes ``out`` (JSON: per
 method and seed the first iteration at which most episodes end in S4, the final success
 rate, the mean completion time and the budget used) and, beside it, PNGs of success rate,
-completion time and mean end-of-episode stage vs iteration (mean over seeds, min-max band).
+completion time and mean end-of-episode stage vs iteration (mean over seeds, min-max band),
+and of each method's reward scales rho_j, each over its largest value (first seed), which
+explain where a schedule stalls.
 """
 from __future__ import annotations
 
@@ -44,10 +48,19 @@ CURVES = {"success_rate": "success rate", "completion_time_s": "completion time 
           "mean_end_stage": "mean end-of-episode stage"}
 
 
-def train_config(cfg: DictConfig, schedule: str, seed: int) -> DictConfig:
-    run = Path(cfg.runs_dir) / f"{schedule}_s{seed}"
-    overrides = [*cfg.train, f"curriculum.schedule={schedule}", f"seed={seed}", f"out_dir={run}",
-                 f"total_iterations={int(cfg.iterations)}"]
+def methods(cfg: DictConfig) -> dict[str, list[str]]:
+    """Each method's overrides: a schedule alone, or a variant's schedule plus its overrides."""
+    out = {schedule: [f"curriculum.schedule={schedule}"] for schedule in cfg.schedules}
+    for name, variant in (cfg.variants or {}).items():
+        if name in out or set(variant) != {"schedule", "overrides"}:
+            raise ValueError(f"variants.{name}: needs a new name and exactly the keys schedule, overrides; got {dict(variant)}")
+        out[name] = [f"curriculum.schedule={variant.schedule}", *variant.overrides]
+    return out
+
+
+def train_config(cfg: DictConfig, method: str, overrides: list[str], seed: int) -> DictConfig:
+    run = Path(cfg.runs_dir) / f"{method}_s{seed}"
+    overrides = [*cfg.train, *overrides, f"seed={seed}", f"out_dir={run}", f"total_iterations={int(cfg.iterations)}"]
     if (run / "checkpoint.pt").is_file():
         overrides.append(f"resume={run}")
     if GlobalHydra.instance().is_initialized():  # under @hydra.main: same config folder
@@ -129,25 +142,44 @@ def plot_curves(runs: dict[str, dict[int, list[dict]]], window: int, out_dir: Pa
     return written
 
 
+def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
+    """rho_j over its largest value, every stage term vs iteration, one panel per method (its first seed)."""
+    fig, axes = plt.subplots(1, len(runs), figsize=(3.6 * len(runs), 3.2), sharey=True, squeeze=False)
+    for ax, (method, by_seed) in zip(axes[0], runs.items()):
+        rows = next(iter(by_seed.values()))
+        for key in sorted({k for r in rows for k in r if k.startswith("rho/")}):
+            values = np.array([r.get(key, math.nan) for r in rows])
+            ax.plot([r["iteration"] for r in rows], values / np.nanmax(np.abs(values)), label=key[4:])
+        ax.set(title=f"{method} (seed {next(iter(by_seed))})", xlabel="iteration")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("rho_j / max_t rho_j")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    path = out_dir / "ablation_ee_rho.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def run_ablation(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0, prov = time.monotonic(), provenance()  # before any output: the tree is still clean
     results, curves, backend = {}, {}, None
-    for schedule in cfg.schedules:
-        results[schedule], curves[schedule] = {}, {}
+    for method, overrides in methods(cfg).items():
+        results[method], curves[method] = {}, {}
         for seed in cfg.seeds:
-            tcfg = train_config(cfg, schedule, int(seed))
+            tcfg = train_config(cfg, method, overrides, int(seed))
             if train(tcfg)["stopped_by_signal"]:
                 # The run checkpointed; stop here too (a caller sent SIGTERM/SIGINT), or this
                 # process would go on writing into the next runs' folders.
-                raise SystemExit(f"stopped by a signal during {schedule} seed {seed}; rerun to resume")
+                raise SystemExit(f"stopped by a signal during {method} seed {seed}; rerun to resume")
             backend = str(tcfg.env.backend)
             run = Path(tcfg.out_dir)
             rows = load_metrics(run / "metrics.jsonl")
-            curves[schedule][int(seed)] = rows
+            curves[method][int(seed)] = rows
             last = rows[-1] if rows else {}
-            results[schedule][f"seed_{seed}"] = {
+            results[method][f"seed_{seed}"] = {
                 "iterations_to_S4_majority": first_majority_in_final(rows),
                 "iterations_to_majority_at_least": {f"S{k}": first_majority_at_least(rows, k) for k in range(1, 5)},
                 "final_mean_end_stage_train": final_mean(rows, "mean_end_stage"),
@@ -156,9 +188,9 @@ def run_ablation(cfg: DictConfig) -> dict:
                            "train_wall_s": last.get("wall_s")},
                 "run": str(run),
             }
-    pngs = plot_curves(curves, int(cfg.window), out.parent)
+    pngs = plot_curves(curves, int(cfg.window), out.parent) + [plot_rho(curves, out.parent)]
     summary = {m: _summary(r) for m, r in results.items()}
-    doc = {"task": "ee_tracking (4 points)", "backend": backend, "results": results, "summary": summary,
+    doc = {"task": "ee_tracking (4 points)", "backend": backend, "methods": methods(cfg), "results": results, "summary": summary,
            "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
     return doc

@@ -12,6 +12,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "recipes"))
 import ablation_ee  # noqa: E402
 
+from pnp.training.checkpoint import load_checkpoint  # noqa: E402
+
 
 def test_ablation_runs_resumes_and_reports(tmp_path):
     overrides = [
@@ -20,6 +22,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path):
     ]
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("ablation_ee", overrides=overrides)
+    cfg.variants = {"floor": {"schedule": "dynamic", "overrides": ["curriculum.completed_floor=0.5"]}}
     cfg.train = [
         "experiment=ee_tracking_ablation", "env.num_worlds=4", "env.max_episode_steps=5",
         "collect.frames_per_batch=24", "collect.minibatch_size=12", "collect.num_epochs=1", "model.actor_cells=[16]",
@@ -27,17 +30,24 @@ def test_ablation_runs_resumes_and_reports(tmp_path):
     ]
     doc = ablation_ee.run_ablation(cfg)
     saved = json.loads((tmp_path / "ablation.json").read_text())
-    assert saved["results"].keys() == {"dynamic", "liu_min"} and saved["backend"] == "kinematic"
-    for method in ("dynamic", "liu_min"):
+    assert saved["results"].keys() == {"dynamic", "liu_min", "floor"} and saved["backend"] == "kinematic"
+    assert saved["methods"]["floor"] == ["curriculum.schedule=dynamic", "curriculum.completed_floor=0.5"]
+    floor_cfg = load_checkpoint(tmp_path / "runs" / "floor_s0" / "checkpoint.pt")["cfg"]
+    assert floor_cfg["curriculum"]["completed_floor"] == 0.5 and floor_cfg["curriculum"]["schedule"] == "dynamic"
+    for method in ("dynamic", "liu_min", "floor"):
         r = saved["results"][method]["seed_0"]
         assert r["trials"] == 3 and 0.0 <= r["success_rate"] <= 1.0
         assert r["budget"]["iterations"] == 2 and r["budget"]["frames"] == 48
-    for key in ablation_ee.CURVES:
+    for key in [*ablation_ee.CURVES, "rho"]:
         assert (tmp_path / f"ablation_ee_{key}.png").stat().st_size > 0
     assert doc["commit"] and doc["command"]
     # A rerun finds the finished runs and only re-evaluates them.
     again = ablation_ee.run_ablation(cfg)
-    assert again["results"]["liu_min"]["seed_0"]["budget"] == r["budget"]
+    assert again["results"]["liu_min"]["seed_0"]["budget"] == saved["results"]["liu_min"]["seed_0"]["budget"]
+    # A larger budget trains the finished runs on.
+    cfg.iterations = 3
+    longer = ablation_ee.run_ablation(cfg)
+    assert longer["results"]["floor"]["seed_0"]["budget"]["iterations"] == 3
 
 
 def test_first_majority_and_windows():

@@ -131,6 +131,10 @@ class Trainer:
         cfg, ckpt = resume_config(cfg)
         if cfg.out_dir is None:
             raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
+        if ckpt is None and (Path(cfg.out_dir) / "checkpoint.pt").is_file():
+            # A fresh start would truncate the run's metrics and soon overwrite its checkpoint.
+            raise ValueError(f"out_dir={cfg.out_dir} holds a run (checkpoint.pt): resume={cfg.out_dir} continues it; "
+                             "to start over, use another out_dir or delete that one")
         self.cfg, self.out_dir = cfg, Path(cfg.out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"

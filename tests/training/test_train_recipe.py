@@ -1,6 +1,9 @@
-"""recipes/train.py: rerunning a plain (phase-less) training's command resumes it in place."""
+"""recipes/train.py: rerunning a plain (phase-less) training's command resumes it in place;
+the library refuses a fresh start over a run."""
 import json
 import sys
+
+import pytest
 
 from pnp.training.trainer import train
 from tests.training._tiny import ROOT, TINY, compose_cfg
@@ -17,6 +20,10 @@ def test_rerunning_into_a_run_folder_resumes_it(tmp_path):
     train(cfg)
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2]  # continued, the first iteration's row kept
+    # Called as a library without resume, the Trainer refuses to start over the run.
+    with pytest.raises(ValueError, match=r"holds a run \(checkpoint.pt\): resume="):
+        train(compose_cfg("train", [*TINY, f"out_dir={out}", "total_iterations=3"]))
+    assert len((out / "metrics.jsonl").read_text().splitlines()) == 2
 
 
 def test_a_fresh_folder_starts_fresh(tmp_path):

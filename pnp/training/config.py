@@ -58,6 +58,10 @@ class LocomotionConfig:
     # Ours: only the feet touch the floor, so a fall is read off the trunk (stands at ~0.63 m).
     fall_height: float = 0.35  # m, trunk centre
     fall_tilt: float = 1.0  # rad between the trunk's z axis and the vertical
+    # legged_gym's only_positive_rewards (True there): each step's summed reward clipped at 0,
+    # so the penalties cannot outweigh what a gait being learned earns. Off in our first leg
+    # policy, which learned to stand and not to walk (docs/low_level.md).
+    only_positive_rewards: bool = False
 
 
 @dataclass

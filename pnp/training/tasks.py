@@ -5,7 +5,9 @@ from __future__ import annotations
 from typing import Callable
 
 from omegaconf import DictConfig
-from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
+import math
+
+from torchrl.envs import Compose, EnvBase, RewardClipping, StepCounter, TransformedEnv
 
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
 from pnp.ee_task import ee_reward_config, ee_stage_graph
@@ -15,7 +17,7 @@ from pnp.envs.pnp_env import PnPEnv
 from pnp.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
 from pnp.training.config import KinematicOptions
-from pnp.training.keys import STAGE_ONE_HOT
+from pnp.training.keys import REWARD, STAGE_ONE_HOT
 from pnp.training.low_level import LOW_LEVELS, learned_backend
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
 
@@ -139,14 +141,17 @@ def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> Transformed
     """The ``env.task`` env wrapped in StepCounter -> StageTransition -> reward schedule."""
     make_base = _task(env_cfg)[2]
     name, sched = schedule_args(cur_cfg, env_cfg.task)
-    return TransformedEnv(make_base(env_cfg, seed), Compose(
+    transforms = [
         # Before StageTransition: a shorter episode limit sets done, which ends the stage.
         StepCounter(max_steps=env_cfg.max_episode_steps),
         StageTransition(stage_graph(cur_cfg, env_cfg.task), one_hot_key=STAGE_ONE_HOT,
                         episode_stage=str(cur_cfg.episode_stage)),
         make_reward_schedule(name, **sched),
-    ))
+    ]
+    if env_cfg.task == "locomotion" and env_cfg.locomotion.only_positive_rewards:
+        transforms.append(RewardClipping(0.0, math.inf, in_keys=[REWARD]))
+    return TransformedEnv(make_base(env_cfg, seed), Compose(*transforms))
 
 
 def schedule_of(env: TransformedEnv) -> StageRewardSchedule:
-    return env.transform[-1]
+    return next(t for t in env.transform if isinstance(t, StageRewardSchedule))

@@ -9,7 +9,7 @@ from pnp.legged_backend import LeggedMujocoBackend
 from pnp.locomotion import LOCO_OBS_DIM
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.rollout import load_policy, run_trials
-from pnp.training.tasks import make_env
+from pnp.training.tasks import make_env, schedule_of
 from pnp.training.trainer import train
 from tests.training._tiny import ROOT, TINY, compose_cfg
 
@@ -88,3 +88,25 @@ def test_a_teacher_is_rendered_walking(locomotion_run, pnp_run, tmp_path):
     info = render_recipe.main(["--checkpoint", str(pnp_run), "--low-level-checkpoint", str(locomotion_run),
                                "--out", str(out), "--tries", "1", "--max-steps", "3"])
     assert out.stat().st_size > 0 and info["low_level"] == "learned" and info["steps"] == 3
+
+
+def test_only_positive_rewards_clips_each_steps_reward_at_zero():
+    """env.locomotion.only_positive_rewards (legged_gym's): the same steps, the reward max(r, 0)."""
+    def env_of(clip):
+        cfg = compose_cfg("train", [*MUJOCO_TINY, "experiment=locomotion", "env.nthread=1", "env.num_worlds=3",
+                                    f"env.locomotion.only_positive_rewards={clip}"])
+        return make_env(cfg.env, cfg.curriculum, seed=0)
+
+    plain, clipped = env_of(False), env_of(True)
+    assert schedule_of(clipped) is clipped.transform[2]  # the schedule, not the clipping after it
+    td_plain, td_clip, lowest = plain.reset(), clipped.reset(), 0.0
+    actions = 2 * torch.rand(10, 3, 1, 12, generator=torch.Generator().manual_seed(0)) - 1  # big random steps
+    for a in actions:
+        td_plain = plain.step(td_plain.set(("agents", "action"), a))
+        td_clip = clipped.step(td_clip.set(("agents", "action"), a))
+        r_plain, r_clip = td_plain["next", "agents", "reward"], td_clip["next", "agents", "reward"]
+        assert torch.equal(r_clip, r_plain.clamp_min(0.0))
+        lowest = min(lowest, float(r_plain.min()))
+        td_plain, td_clip = plain.step_mdp(td_plain), clipped.step_mdp(td_clip)
+    assert lowest < -1e-3  # random leg steps cost more than they earn: the clip did something
+    plain.close(), clipped.close()

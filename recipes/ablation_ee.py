@@ -149,7 +149,8 @@ def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
         rows = next(iter(by_seed.values()))
         for key in sorted({k for r in rows for k in r if k.startswith("rho/")}):
             values = np.array([r.get(key, math.nan) for r in rows])
-            ax.plot([r["iteration"] for r in rows], values / np.nanmax(np.abs(values)), label=key[4:])
+            scale = np.nanmax(np.abs(values)) or 1.0  # a term whose rho stays 0 plots at 0
+            ax.plot([r["iteration"] for r in rows], values / scale, label=key[4:])
         ax.set(title=f"{method} (seed {next(iter(by_seed))})", xlabel="iteration")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("rho_j / max_t rho_j")

@@ -60,7 +60,7 @@ class LocomotionConfig:
     fall_tilt: float = 1.0  # rad between the trunk's z axis and the vertical
     # legged_gym's only_positive_rewards (True there): each step's summed reward clipped at 0,
     # so the penalties cannot outweigh what a gait being learned earns. Off in our first leg
-    # policy, which learned to stand and not to walk (docs/low_level.md).
+    # policy (docs/low_level.md).
     only_positive_rewards: bool = False
 
 

@@ -2,11 +2,10 @@
 as StepCounter -> StageTransition -> reward schedule."""
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 from omegaconf import DictConfig
-import math
-
 from torchrl.envs import Compose, EnvBase, RewardClipping, StepCounter, TransformedEnv
 
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
@@ -138,7 +137,8 @@ def stage_graph(cur_cfg: DictConfig, task: str = "pnp") -> StageGraph:
 
 
 def make_env(env_cfg: DictConfig, cur_cfg: DictConfig, seed: int) -> TransformedEnv:
-    """The ``env.task`` env wrapped in StepCounter -> StageTransition -> reward schedule."""
+    """The ``env.task`` env wrapped in StepCounter -> StageTransition -> reward schedule
+    (-> RewardClipping at 0 for a locomotion env with ``only_positive_rewards``)."""
     make_base = _task(env_cfg)[2]
     name, sched = schedule_args(cur_cfg, env_cfg.task)
     transforms = [

@@ -166,8 +166,8 @@ def run_ablation(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0, prov = time.monotonic(), provenance()  # before any output: the tree is still clean
-    results, curves, backend = {}, {}, None
-    for method, overrides in methods(cfg).items():
+    results, curves, backend, by_name = {}, {}, None, methods(cfg)
+    for method, overrides in by_name.items():
         results[method], curves[method] = {}, {}
         for seed in cfg.seeds:
             tcfg = train_config(cfg, method, overrides, int(seed))
@@ -191,7 +191,7 @@ def run_ablation(cfg: DictConfig) -> dict:
             }
     pngs = plot_curves(curves, int(cfg.window), out.parent) + [plot_rho(curves, out.parent)]
     summary = {m: _summary(r) for m, r in results.items()}
-    doc = {"task": "ee_tracking (4 points)", "backend": backend, "methods": methods(cfg), "results": results, "summary": summary,
+    doc = {"task": "ee_tracking (4 points)", "backend": backend, "methods": by_name, "results": results, "summary": summary,
            "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
     return doc

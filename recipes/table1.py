@@ -87,7 +87,9 @@ def train_config(cfg: DictConfig, method: str, seed: int, kinematic_only: bool =
     full = _compose(overrides)
     if seed in cfg.mujoco_seeds and not kinematic_only:
         return full, full
-    return _compose([*overrides, f"pipeline=[{','.join(kinematic_phases(full))}]"]), full
+    kinematic = full.copy()
+    kinematic.pipeline = kinematic_phases(full)
+    return kinematic, full
 
 
 def budget_frames(tcfg: DictConfig) -> int:
@@ -315,10 +317,13 @@ def run_table1(cfg: DictConfig) -> dict:
         seeds, curves[method] = {}, {}
         for seed in cfg.seeds:
             seeds[str(seed)], curves[method][int(seed)], full = run_seed(cfg, method, int(seed))
-            kin = kinematic_phases(full)
-            budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
-            phases = phases or [(sum(p["frames"] for p in load_state(Path(full.out_dir))[:i]), p["name"])
-                                for i, p in enumerate(load_state(Path(full.out_dir))) if p["name"] in kin]
+        kin = kinematic_phases(full)  # the method's pipeline is the same for every seed
+        budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
+        if not phases:  # where each kinematic phase starts, for the plots' markers
+            done, start = load_state(Path(full.out_dir)), 0
+            for p in done[: len(kin)]:
+                phases.append((start, p["name"]))
+                start += p["frames"]
         if len(set(budgets.values())) > 1:
             raise ValueError(f"the methods must share one frame budget (all phases, kinematic ones); got {budgets}")
         table = summary_over_seeds([s["eval"] for s in seeds.values() if "eval" in s], int(cfg.eval.trials),

@@ -5,12 +5,14 @@
 
 Every method trains ``experiment=table1_<method>`` (the same phases and frame budget,
 ``recipes/config/experiment/table1_common.yaml``) with each seed into
-``runs_dir/<method>_s<seed>``, one training at a time; a finished run is skipped and a
-stopped one resumes (the pipeline's own resume). Every seed runs the kinematic phases (those
-before the first MuJoCo phase); the seeds in ``mujoco_seeds`` go on through the MuJoCo
-phases, since a MuJoCo fine-tune that learns costs about an hour here. Each seed's kinematic
-policy runs ``eval_kinematic.trials`` deterministic episodes and each MuJoCo seed's final
-policy ``eval.trials`` (Table I; both cached beside the run). Writes ``out``: per method and
+``runs_dir/<method>_s<seed>``, one training at a time, seed by seed (every method's seed 0
+first); a stopped run resumes (the pipeline's own resume). Every seed runs the kinematic
+phases (those before the first MuJoCo phase); the seeds in ``mujoco_seeds`` go on through
+the MuJoCo phases, since a MuJoCo fine-tune that learns costs about an hour here. Each
+seed's kinematic policy runs ``eval_kinematic.trials`` deterministic episodes and each MuJoCo
+seed's final policy ``eval.trials`` (Table I). A finished run's record (rows, evaluations)
+goes to ``records_dir`` and is reused while its settings hold, so the comparison survives a
+lost ``runs_dir`` across sessions (``pnp.training.run_records``). Writes ``out``: per method and
 seed the frames and wall time until the training mean end stage and success rate reach
 their thresholds over the kinematic phases (null if never), the evaluations, and the ratios
 against the best baseline; and beside it PNGs of the mean end-of-episode stage (paper Fig. 6)
@@ -48,6 +50,7 @@ from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pi
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
+from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
 from pnp.training.tasks import make_env  # noqa: E402
 
@@ -79,13 +82,13 @@ def kinematic_phases(tcfg: DictConfig) -> list[str]:
     return names
 
 
-def train_config(cfg: DictConfig, method: str, seed: int, kinematic_only: bool = False) -> tuple[DictConfig, DictConfig]:
+def train_config(cfg: DictConfig, method: str, seed: int) -> tuple[DictConfig, DictConfig]:
     """The run's config (the kinematic phases only unless ``seed`` is in ``cfg.mujoco_seeds``)
     and the full pipeline's (for the budget)."""
     run = Path(cfg.runs_dir) / f"{method}_s{seed}"
     overrides = [f"experiment=table1_{method}", *cfg.train, f"seed={seed}", f"out_dir={run}"]
     full = _compose(overrides)
-    if seed in cfg.mujoco_seeds and not kinematic_only:
+    if seed in cfg.mujoco_seeds:
         return full, full
     kinematic = full.copy()
     kinematic.pipeline = kinematic_phases(full)
@@ -280,13 +283,19 @@ def train(tcfg: DictConfig, method: str, seed: int) -> None:
         raise SystemExit(f"stopped during {method} seed {seed} (a signal or the wall-time limit); rerun to resume")
 
 
-def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict], DictConfig]:
-    """Train (or resume, or skip) one run and evaluate it: its record, its kinematic rows, its full config."""
+def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict], DictConfig, list]:
+    """Train (or resume, or skip) one run and evaluate it: its record, its kinematic rows, its
+    full config and where its kinematic phases start. A finished run's record is kept in
+    ``cfg.records_dir`` and reused while the run's settings are unchanged."""
     tcfg, full = train_config(cfg, method, seed)
+    path = Path(cfg.records_dir) / f"{method}_s{seed}.json"
+    kept = load_record(path, tcfg)
+    if kept is not None:
+        return kept["record"], kept["rows"], full, [tuple(p) for p in kept["phase_starts"]]
     run = Path(tcfg.out_dir)
     train(tcfg, method, seed)
     kin = kinematic_phases(full)
-    rows = [r for r in run_rows(run) if r["phase"] in kin]
+    rows = compact([r for r in run_rows(run) if r["phase"] in kin])
     record = {**efficiency(rows, cfg.thresholds, int(cfg.window)), "wall_s": rows[-1]["wall_s"],
               "frames": rows[-1]["frames"], "run": str(run),
               "eval_kinematic": evaluate(run, phase_checkpoint(run, kin[-1]), cfg.eval_kinematic, "eval_kinematic")}
@@ -296,7 +305,12 @@ def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict],
         record["wall_s_all_phases"] = sum(p["wall_s"] for p in phases)
     if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
         record["subtasks"] = subtask_history(rows)
-    return record, rows, full
+    starts, start = [], 0
+    for p in load_state(run)[: len(kin)]:
+        starts.append((start, p["name"]))
+        start += p["frames"]
+    save_record(path, tcfg, {"record": record, "rows": rows, "phase_starts": starts})
+    return record, rows, full, starts
 
 
 def run_table1(cfg: DictConfig) -> dict:
@@ -307,23 +321,18 @@ def run_table1(cfg: DictConfig) -> dict:
         raise ValueError(f"ours={cfg.ours!r} is not among methods {list(cfg.methods)}")
     if not set(cfg.mujoco_seeds) <= set(cfg.seeds):
         raise ValueError(f"mujoco_seeds={list(cfg.mujoco_seeds)} must be among seeds={list(cfg.seeds)}")
-    for method in cfg.methods:  # every run's kinematic phases first: Fig. 6 and the efficiency come from them
-        for seed in cfg.seeds:
-            tcfg = train_config(cfg, method, int(seed), kinematic_only=True)[0]
-            if len(load_state(Path(tcfg.out_dir))) < len(tcfg.pipeline):  # a MuJoCo seed may be past them
-                train(tcfg, method, int(seed))
+    done = {}  # seed by seed, every method: each finished seed is a complete row of the comparison
+    for seed in cfg.seeds:
+        for method in cfg.methods:
+            done[method, int(seed)] = run_seed(cfg, method, int(seed))
     methods, curves, budgets, phases = {}, {}, {}, []
     for method in cfg.methods:
         seeds, curves[method] = {}, {}
         for seed in cfg.seeds:
-            seeds[str(seed)], curves[method][int(seed)], full = run_seed(cfg, method, int(seed))
+            seeds[str(seed)], curves[method][int(seed)], full, starts = done[method, int(seed)]
+            phases = phases or starts  # where each kinematic phase starts, for the plots' markers
         kin = kinematic_phases(full)  # the method's pipeline is the same for every seed
         budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
-        if not phases:  # where each kinematic phase starts, for the plots' markers
-            done, start = load_state(Path(full.out_dir)), 0
-            for p in done[: len(kin)]:
-                phases.append((start, p["name"]))
-                start += p["frames"]
         if len(set(budgets.values())) > 1:
             raise ValueError(f"the methods must share one frame budget (all phases, kinematic ones); got {budgets}")
         table = summary_over_seeds([s["eval"] for s in seeds.values() if "eval" in s], int(cfg.eval.trials),

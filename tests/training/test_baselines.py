@@ -4,6 +4,7 @@ stage rewards, parameter counts, and recipes/table1.py end to end at toy size.""
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 
 import pytest
@@ -232,7 +233,7 @@ def test_thresholds_count_only_the_whole_task():
 
 def _table1_cfg(tmp_path, methods, seeds, *phases):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
-        cfg = compose("table1", overrides=[f"methods={methods}", f"seeds={seeds}", f"runs_dir={tmp_path / 'runs'}",
+        cfg = compose("table1", overrides=[f"methods={methods}", f"seeds={seeds}", f"runs_dir={tmp_path / 'runs'}", f"records_dir={tmp_path / 'records'}",
                                            f"out={tmp_path / 'table1.json'}", "eval.trials=3", "eval.backend=kinematic",
                                            "eval.num_worlds=3", "eval.max_episode_steps=5", "eval_kinematic.trials=3",
                                            "eval_kinematic.num_worlds=3", "eval_kinematic.max_episode_steps=5", "curve_bins=4"])
@@ -273,9 +274,17 @@ def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
     assert m["parameters"]["inference"] * 7 == m["parameters"]["actor"]
     for png in ("table1_end_stage.png", "table1_success_rate.png"):
         assert (tmp_path / png).stat().st_size > 0
-    # a rerun trains nothing and reuses the evaluations
+    # a rerun trains nothing and reuses the evaluations, from the records even without the run folders
     again = table1.run_table1(cfg)
     assert again["methods"]["dynamic"]["seeds"] == doc["methods"]["dynamic"]["seeds"]
+    shutil.rmtree(tmp_path / "runs")
+    kept = table1.run_table1(cfg)
+    assert kept["methods"] == again["methods"] and not (tmp_path / "runs").exists()
+    # a record of other settings is not reused: that run trains again
+    cfg.train = [*cfg.train, "loss.clip_epsilon=0.25"]
+    cfg.methods, cfg.seeds, cfg.mujoco_seeds = ["dynamic"], [1], []
+    table1.run_table1(cfg)
+    assert [p["name"] for p in load_state(tmp_path / "runs" / "dynamic_s1")] == ["kin"]
 
 
 @pytest.mark.slow

@@ -1,0 +1,50 @@
+"""A finished run's summary kept apart from its run folder (a comparison's per-run record).
+
+Run folders live under ``runs/`` and are not committed; a comparison that spans several
+sessions (``recipes/table1.py``: 15 runs, ~12 CPU-h here) would lose every finished run
+with them. Each finished run's record (its metric rows, evaluations, efficiency) is written
+as JSON with the configuration it ran, and is reused only while that configuration is
+unchanged; a record of another configuration is ignored (the run trains again).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from pnp.training.config import changed_settings
+from pnp.training.pipeline import _RESUMABLE
+
+# The rows' columns a comparison reads (curves, thresholds, Bendikas' sub-task ends).
+ROW_KEYS = ("iteration", "frames", "wall_s", "phase", "episodes", "end_stage", "success_rate", "subtask",
+            "subtask_exit")
+
+
+def compact(rows: list[dict]) -> list[dict]:
+    return [{k: r[k] for k in ROW_KEYS if k in r} for r in rows]
+
+
+def load_record(path: Path, cfg: DictConfig) -> dict | None:
+    """The record at ``path`` if it was written by a run of ``cfg`` (settings a resume may
+    change aside), else ``None``; a file that is not a record raises, naming it."""
+    if not path.is_file():
+        return None
+    try:
+        saved = json.loads(path.read_text())
+        then = OmegaConf.create(saved["config"])
+        payload = saved["record"]
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{path}: not a run record ({err!r}); move it away to retrain that run") from err
+    changed = changed_settings(cfg, then, _RESUMABLE)
+    if changed:
+        print(f"{path}: recorded for other settings ({sorted(changed)[:5]}), ignored: the run trains")
+        return None
+    return payload
+
+
+def save_record(path: Path, cfg: DictConfig, payload: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg, resolve=True), "record": payload}) + "\n")
+    tmp.replace(path)  # a stop mid-write leaves the old record or none, never half of one

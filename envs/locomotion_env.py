@@ -34,13 +34,13 @@ from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from pnp.envs.pnp_env import RobotEnvBase, _torch_single_threaded
 from pnp.locomotion import (
     DECIMATION, EPISODE_S, LOCO_OBS_DIM, LOCO_REWARD_TERMS, N_LEG, POLICY_DT, STAND, LocomotionPhysics,
-    base_readouts, build_locomotion_scene, default_reward, fallen, feet_air_time, joint_targets, observation,
+    LegServo, base_readouts, build_locomotion_scene, default_reward, fallen, feet_air_time, observation,
     reward_terms, sample_arm_goals, sample_commands, sample_uniform,
 )
 from pnp.robot import ARM_DEFAULT, ARM_SPEED, FINGER_STROKE
 
 SETTINGS = ("command_low", "command_high", "command_resample_s", "stand_share", "arm_resample_s", "payload_mass",
-             "push_interval_s", "push_speed", "fall_height", "fall_tilt")
+             "push_interval_s", "push_speed", "fall_height", "fall_tilt", "leg_kp", "leg_kd", "action_scale")
 
 
 def _steps(seconds: float, name: str) -> int:
@@ -65,6 +65,7 @@ class LocomotionEnv(RobotEnvBase):
         self._init_worlds(num_worlds, 1, max_episode_steps, device)
         self._read_settings(settings)
         self.model, self.idx = build_locomotion_scene()
+        self.servo.apply(self.model, self.idx.leg_ctrl)
         self.backend = LocomotionPhysics(self.model, num_worlds, nthread)  # RobotEnvBase's name for it
         self._gravity = float(-self.model.opt.gravity[2])
         self._make_specs()
@@ -102,6 +103,7 @@ class LocomotionEnv(RobotEnvBase):
         self.payload_mass = _range(s.payload_mass, "payload_mass")
         self.push_speed = _range(s.push_speed, "push_speed")
         self.fall_height, self.fall_tilt = float(s.fall_height), float(s.fall_tilt)
+        self.servo = LegServo(float(s.leg_kp), float(s.leg_kd), float(s.action_scale))
         if not (self.fall_height >= 0.0 and 0.0 < self.fall_tilt <= math.pi):
             raise ValueError(f"env.locomotion.fall_height must be >= 0 m and fall_tilt in (0, pi] rad, "
                              f"got {s.fall_height!r} and {s.fall_tilt!r}")
@@ -188,7 +190,7 @@ class LocomotionEnv(RobotEnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action, clipped = self._check_action(tensordict.get(("agents", "action"), None))
         a = action[:, 0]
-        target = joint_targets(a)
+        target = self.servo.targets(a)
         # The arm ramps to its goal at its rated speed, as the HL executors move it.
         step = ARM_SPEED * POLICY_DT
         self._arm_target += (self._arm_goal - self._arm_target).clamp(-step, step)
@@ -211,7 +213,7 @@ class LocomotionEnv(RobotEnvBase):
         air_term, self._air = feet_air_time(self._air, contact, self._last_contact, self._command)
         fell = fallen(base["height"], base["gravity"], self.fall_height, self.fall_tilt) & ~diverged
         terms = reward_terms(base, self._command, q, qd, self._last_qd, target, a, self._last_action[:, 0],
-                             air_term, fell)
+                             air_term, fell, self.servo)
         self._last_contact, self._last_qd = contact, qd
         self._last_action = a.unsqueeze(1)
         limit = self._steps >= self.max_steps

@@ -25,7 +25,7 @@ import torch
 from pnp.backend import MujocoBackend, quat_to_matrix
 from pnp.box import BoxAsset
 from pnp.executor import LL_DT
-from pnp.locomotion import LOCO_OBS_DIM, STAND, base_readouts, joint_targets, observation
+from pnp.locomotion import LOCO_OBS_DIM, STAND, LegServo, base_readouts, observation
 from pnp.robot import ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
 from pnp.scene import PHYSICS_DT, compose_scene
 from pnp.task import HL_DT
@@ -83,9 +83,11 @@ class LeggedMujocoBackend(MujocoBackend):
     """:class:`pnp.backend.MujocoBackend` on legs, the legs driven by ``policy`` (see module doc)."""
 
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, policy: LowLevelPolicy,
-                 nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None):
+                 nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None,
+                 servo: LegServo = LegServo()):
         super().__init__(num_worlds, num_robots, box, nthread=nthread, physics_dt=physics_dt, finger_speed=finger_speed)
-        self.policy = policy
+        self.policy, self.servo = policy, servo  # the servo the leg policy was trained under
+        servo.apply(self.model, self.idx.leg_ctrl)
         self.decimation = int(round(LL_DT / physics_dt))
         if self.nsub % self.decimation:
             raise ValueError(f"HL step {HL_DT} s is not a whole number of LL ticks of {LL_DT} s at dt={physics_dt}")
@@ -140,7 +142,7 @@ class LeggedMujocoBackend(MujocoBackend):
             leg_action = leg_action.clamp(-1.0, 1.0)
             self.last_leg_action = leg_action.detach().clone()
             sub = slice(tick * self.decimation, (tick + 1) * self.decimation)
-            target = joint_targets(leg_action.reshape(N * R, -1)) - STAND
+            target = self.servo.targets(leg_action.reshape(N * R, -1)) - STAND
             ctrl[:, :, i.leg_ctrl.reshape(-1)] = target.reshape(N, 1, -1).double().numpy()
             ctrl[:, :, i.arm_ctrl.reshape(-1)] = arm[:, sub].reshape(N, self.decimation, -1).double().numpy()
             ctrl[:, :, i.finger_ctrl.reshape(-1)] = fingers[:, sub].reshape(N, self.decimation, -1).double().numpy()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+from dataclasses import dataclass
 
 from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
@@ -224,14 +225,39 @@ def base_readouts(qpos: torch.Tensor, qvel: torch.Tensor, adr: int, dof: int) ->
             "gravity": -torch.stack([r20, r21, r22], -1)}
 
 
-def leg_torques(target: torch.Tensor, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
-    """The servos' torques [N, 12] (robot.py's PD with its limits), at joint targets ``target``."""
-    return (LEG_KP * (target - q) - LEG_KD * qd).clamp(-LEG_TORQUE, LEG_TORQUE)
+@dataclass(frozen=True)
+class LegServo:
+    """The leg servos (a PD about the joint target, torque-limited) and the leg action's scale
+    (target = stand + ``action_scale`` * action, within the joint ranges). A leg policy is
+    trained under one and runs under it (``env.locomotion.leg_kp``, ``leg_kd``, ``action_scale``):
+    robot.py's model carries the defaults, :meth:`apply` writes others into a compiled model."""
 
+    kp: float = LEG_KP
+    kd: float = LEG_KD
+    action_scale: float = ACTION_SCALE
 
-def joint_targets(action: torch.Tensor) -> torch.Tensor:
-    """Leg joint targets [N, 12] of actions [N, 12] (the servos clamp them to the joint ranges)."""
-    return torch.minimum(torch.maximum(STAND + ACTION_SCALE * action, _LEG_LO), _LEG_HI)
+    def __post_init__(self):
+        if not (self.kp > 0 and self.kd >= 0 and self.action_scale > 0):
+            raise ValueError(f"leg servo needs kp > 0, kd >= 0 and action_scale > 0; got kp={self.kp!r}, "
+                             f"kd={self.kd!r}, action_scale={self.action_scale!r}")
+
+    def targets(self, action: torch.Tensor) -> torch.Tensor:
+        """Leg joint targets [N, 12] of actions [N, 12] in [-1, 1]."""
+        return torch.minimum(torch.maximum(STAND + self.action_scale * action, _LEG_LO), _LEG_HI)
+
+    def torques(self, target: torch.Tensor, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """The servos' torques [N, 12] at joint targets ``target`` (the model's PD and limit)."""
+        return (self.kp * (target - q) - self.kd * qd).clamp(-LEG_TORQUE, LEG_TORQUE)
+
+    def apply(self, model: mujoco.MjModel, actuators) -> None:
+        """Set these gains on leg actuators ``actuators`` (ids [..., 12], LEG_JOINTS order) of
+        ``model``: force = kp (ctrl + q_stand - q) - kd qdot, as robot.py builds them."""
+        q0 = stand_pose()
+        for ids in np.asarray(actuators).reshape(-1, len(LEG_JOINTS)):
+            model.actuator_gainprm[ids, 0] = self.kp
+            model.actuator_biasprm[ids, 0] = self.kp * q0
+            model.actuator_biasprm[ids, 1] = -self.kp
+            model.actuator_biasprm[ids, 2] = -self.kd
 
 
 def fallen(height: torch.Tensor, gravity: torch.Tensor, min_height: float, max_tilt: float) -> torch.Tensor:
@@ -251,7 +277,8 @@ def feet_air_time(air: torch.Tensor, contact: torch.Tensor, last_contact: torch.
     return term, air * ~filt
 
 
-def reward_terms(base: dict, command, q, qd, last_qd, target, action, last_action, air_term, fell) -> torch.Tensor:
+def reward_terms(base: dict, command, q, qd, last_qd, target, action, last_action, air_term, fell,
+                 servo: LegServo) -> torch.Tensor:
     """[N, 1, len(LOCO_REWARD_TERMS)], raw (weights are the reward schedule's)."""
     lin, ang = base["lin_vel"], base["ang_vel"]
     lin_err = (command[:, 0] - lin[:, 0]) ** 2 + (command[:, 1] - lin[:, 1]) ** 2
@@ -262,7 +289,7 @@ def reward_terms(base: dict, command, q, qd, last_qd, target, action, last_actio
         lin[:, 2] ** 2,
         ang[:, 0] ** 2 + ang[:, 1] ** 2,
         base["gravity"][:, 0] ** 2 + base["gravity"][:, 1] ** 2,
-        leg_torques(target, q, qd).pow(2).sum(-1),
+        servo.torques(target, q, qd).pow(2).sum(-1),
         acc.pow(2).sum(-1),
         (action - last_action).pow(2).sum(-1),
         air_term,

@@ -91,7 +91,8 @@ def bench_low_level(checkpoint: str, robots: int, batch: int, steps: int, repeat
     box = (SINGLE_ROBOT_BOXES if robots == 1 else DUAL_ROBOT_BOXES)[0]
     envs = {"ideal": PnPEnv(num_worlds=batch, num_robots=robots, seed=0, nthread=nthread),
             "learned": PnPEnv(num_worlds=batch, num_robots=robots, seed=0, nthread=nthread,
-                              backend=LeggedMujocoBackend(batch, robots, box, timed, nthread=nthread))}
+                              backend=LeggedMujocoBackend(batch, robots, box, timed, nthread=nthread,
+                                                          servo=leg_policy.servo))}
     acts = _actions(envs["ideal"], steps, seed=batch + robots)
     times = {k: [] for k in envs}
     for _ in range(repeats):  # interleaved, so drift in machine load hits both alike

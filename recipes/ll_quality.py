@@ -81,7 +81,8 @@ def measure(cfg: DictConfig) -> dict:
                                     payload_mass=list(p.payload_kg)), policy, int(p.episodes), float(p.seconds))
     box = SINGLE_ROBOT_BOXES[0]
     backends = {"ideal": lambda: MujocoBackend(int(e.worlds), 1, box, nthread=nthread),
-                "learned": lambda: LeggedMujocoBackend(int(e.worlds), 1, box, policy, nthread=nthread)}
+                "learned": lambda: LeggedMujocoBackend(int(e.worlds), 1, box, policy, nthread=nthread,
+                                                       servo=policy.servo)}
     tracking = {}
     for cmd in e.base_commands:
         cmd = [float(x) for x in cmd]

@@ -13,6 +13,8 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.layout import START_RANGE
+from pnp.locomotion import ACTION_SCALE
+from pnp.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
 
 
@@ -62,6 +64,12 @@ class LocomotionConfig:
     # so the penalties cannot outweigh what a gait being learned earns. Off in our first leg
     # policy (docs/low_level.md).
     only_positive_rewards: bool = False
+    # The leg servos and the action's scale (pnp.locomotion.LegServo); the defaults are
+    # robot.py's model (legged_gym's ANYmal C kp 80, kd 2) and legged_gym's 0.5 rad. The leg
+    # policy's checkpoint carries them to the legged backend (docs/low_level.md: kp 80 sags).
+    leg_kp: float = LEG_KP
+    leg_kd: float = LEG_KD
+    action_scale: float = ACTION_SCALE
 
 
 @dataclass

@@ -19,7 +19,7 @@ from pnp.backend import Layout, MujocoBackend
 from pnp.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import SETTINGS
 from pnp.kinematics import clamp_reach
-from pnp.locomotion import LOCO_OBS_FIELDS, POLICY_DT, STAND, joint_targets, leg_torques
+from pnp.locomotion import LOCO_OBS_FIELDS, POLICY_DT, STAND, LegServo
 from pnp.robot import LEG_TORQUE, leg_ranges
 from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT, yaw_rotation
 
@@ -32,12 +32,12 @@ _LO, _HI = (torch.tensor(leg_ranges()[:, i], dtype=torch.float32) for i in (0, 1
 class Saturation:
     """Counts leg joint-steps at the torque limit (the servo PD at the policy step's start) and at a range end."""
 
-    def __init__(self):
-        self.torque = self.limit = self.total = 0
+    def __init__(self, servo: LegServo):
+        self.servo, self.torque, self.limit, self.total = servo, 0, 0, 0
 
     def add(self, action: torch.Tensor, q: torch.Tensor, qd: torch.Tensor, live: torch.Tensor) -> None:
         """Leg ``action`` [N, 12] just applied from state ``q``, ``qd`` [N, 12]; only ``live`` [N] worlds count."""
-        tau = leg_torques(joint_targets(action), q, qd)[live]
+        tau = self.servo.torques(self.servo.targets(action), q, qd)[live]
         q = q[live]
         self.torque += int((tau.abs() >= TORQUE_SATURATED * LEG_TORQUE).sum())
         self.limit += int(((q <= _LO + LIMIT_MARGIN) | (q >= _HI - LIMIT_MARGIN)).sum())
@@ -73,7 +73,7 @@ def velocity_tracking(make_env, policy: LegPolicy, commands, repeats: int = 4, s
         lin_err = torch.zeros(env.num_worlds)
         yaw_err = torch.zeros(env.num_worlds)
         settle, measure = round(settle_s / POLICY_DT), round(measure_s / POLICY_DT)
-        sat = Saturation()
+        sat = Saturation(env.servo)
         for t in range(settle + measure):
             out, action, q, qd = _act(env, policy, td)
             fell |= out.get(("next", "terminated"))[:, 0]
@@ -111,7 +111,7 @@ def push_recovery(make_env, policy: LegPolicy, episodes: int, seconds: float) ->
         td = env.reset()
         fell = torch.zeros(episodes, dtype=torch.bool)
         pushes = torch.zeros(episodes, dtype=torch.long)
-        sat = Saturation()
+        sat = Saturation(env.servo)
         for _ in range(round(seconds / POLICY_DT)):
             before = env._push_in.clone()
             out, action, q, qd = _act(env, policy, td)

@@ -2,14 +2,16 @@
 policy from a ``task=locomotion`` checkpoint, driving the legs of ``pnp.legged_backend``."""
 from __future__ import annotations
 
-from omegaconf import DictConfig
+from dataclasses import dataclass
+
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.box import BoxAsset, DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
 from pnp.legged_backend import LeggedMujocoBackend, LowLevelPolicy
-from pnp.locomotion import LOCO_OBS_DIM
+from pnp.locomotion import LOCO_OBS_DIM, LegServo
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.config import migrate
 from pnp.training.keys import ACTION, OBS, STAGE_ONE_HOT
@@ -17,9 +19,21 @@ from pnp.training.keys import ACTION, OBS, STAGE_ONE_HOT
 LOW_LEVELS = ("ideal", "learned")
 
 
-def load_locomotion_policy(checkpoint: str) -> LowLevelPolicy:
+@dataclass(frozen=True)
+class LocomotionPolicy:
+    """A leg policy (observations [M, LOCO_OBS_DIM] -> leg actions [M, 12]) and the servos it was trained under."""
+
+    act: LowLevelPolicy
+    servo: LegServo
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.act(obs)
+
+
+def load_locomotion_policy(checkpoint: str) -> LocomotionPolicy:
     """The deterministic leg policy of a ``task=locomotion`` run folder or checkpoint file:
-    observations [M, LOCO_OBS_DIM] (raw; the checkpoint's normalisation applies) -> leg actions [M, 12]."""
+    observations [M, LOCO_OBS_DIM] (raw; the checkpoint's normalisation applies) -> leg actions
+    [M, 12], with the servo gains and action scale of its training (``env.locomotion``)."""
     from pnp.training.models import make_models  # the trainer's stack, loaded only when asked for
     from pnp.training.tasks import make_env
 
@@ -48,7 +62,8 @@ def load_locomotion_policy(checkpoint: str) -> LowLevelPolicy:
         with set_interaction_type(InteractionType.DETERMINISTIC):
             return actor(td).get(ACTION)[:, 0]
 
-    return policy
+    loco = cfg.env.locomotion
+    return LocomotionPolicy(policy, LegServo(float(loco.leg_kp), float(loco.leg_kd), float(loco.action_scale)))
 
 
 def learned_backend(env_cfg: DictConfig, boxes: tuple[BoxAsset, ...] | None) -> LeggedMujocoBackend:
@@ -60,6 +75,6 @@ def learned_backend(env_cfg: DictConfig, boxes: tuple[BoxAsset, ...] | None) -> 
         raise ValueError("env.low_level=learned needs env.low_level_checkpoint: a task=locomotion run folder or checkpoint")
     robots = int(env_cfg.num_robots)
     boxes = boxes or (SINGLE_ROBOT_BOXES if robots == 1 else DUAL_ROBOT_BOXES)
-    return LeggedMujocoBackend(int(env_cfg.num_worlds), robots, boxes[0],
-                               load_locomotion_policy(str(env_cfg.low_level_checkpoint)), nthread=env_cfg.nthread,
-                               finger_speed=env_cfg.finger_speed)
+    policy = load_locomotion_policy(str(env_cfg.low_level_checkpoint))
+    return LeggedMujocoBackend(int(env_cfg.num_worlds), robots, boxes[0], policy, nthread=env_cfg.nthread,
+                               finger_speed=env_cfg.finger_speed, servo=policy.servo)

@@ -12,8 +12,8 @@ from torchrl.envs.utils import check_env_specs
 
 from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.locomotion import (
-    LOCO_OBS_DIM, LOCO_OBS_FIELDS, LOCO_REWARD_TERMS, LOCO_REWARD_WEIGHTS, POLICY_DT, REWARD_SCALES,
-    locomotion_reward_config, locomotion_stage_graph,
+    LOCO_OBS_DIM, LOCO_OBS_FIELDS, LOCO_REWARD_TERMS, LOCO_REWARD_WEIGHTS, POLICY_DT, REWARD_SCALES, STAND,
+    LegServo, locomotion_reward_config, locomotion_stage_graph,
 )
 from pnp.robot import LEGGED_STAND_HEIGHT
 from pnp.task import ACTION_HIGH, ACTION_LOW
@@ -91,6 +91,25 @@ def test_zero_action_keeps_standing_for_two_seconds():
     assert env.backend.qpos[:, env.idx.base_qpos + 2].min() > LEGGED_STAND_HEIGHT - 0.15
     terms = outs["agents", "reward_terms"][..., 0, :]
     assert (terms[..., LOCO_REWARD_TERMS.index("fall")] == 0).all()
+
+
+def test_stiffer_leg_servos_sag_less_and_the_action_scale_widens_the_targets():
+    heights = {}
+    for kp in (80.0, 300.0):
+        env = _env(2, push_interval_s=NO_PUSH, payload_mass=[0.0, 0.0], arm_resample_s=NO_PUSH, leg_kp=kp)
+        td = env.reset()
+        env.set_command(torch.zeros(3))
+        _run(env, td, round(1.0 / POLICY_DT))
+        legs = env.idx.leg_ctrl
+        assert (env.model.actuator_gainprm[legs, 0] == kp).all() and (env.model.actuator_biasprm[legs, 1] == -kp).all()
+        heights[kp] = float(env.backend.qpos[:, env.idx.base_qpos + 2].mean())
+    # kp 80 sags ~2 cm below the stand's geometry (robot.py); kp 300 a quarter of that
+    assert LEGGED_STAND_HEIGHT - heights[80.0] > 0.01 and heights[300.0] - heights[80.0] > 0.01
+    wide, narrow = LegServo(action_scale=1.0), LegServo()
+    a = torch.full((1, 12), 0.1)
+    assert torch.allclose(wide.targets(a) - STAND, 2 * (narrow.targets(a) - STAND))
+    with pytest.raises(ValueError, match="kp=-1.0"):
+        LegServo(kp=-1.0)
 
 
 def test_fall_terminates_and_the_world_restarts_standing():

@@ -13,7 +13,7 @@ from pnp.training.config import LocomotionConfig
 from pnp.training.ll_quality import (
     Saturation, command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking,
 )
-from pnp.locomotion import STAND
+from pnp.locomotion import STAND, LegServo
 from tests.training._tiny import ROOT, compose_cfg
 
 sys.path.insert(0, str(ROOT / "recipes"))
@@ -48,7 +48,7 @@ def test_pushes_are_counted_and_falls_end_the_count():
 
 
 def test_saturation_counts_torque_limits_and_range_ends():
-    s = Saturation()
+    s = Saturation(LegServo())
     q = STAND.expand(2, 12).clone()
     q[0, 0] = float(leg_ranges()[0, 1])  # at its upper end
     qd = torch.zeros(2, 12)

@@ -6,7 +6,7 @@ import torch
 
 from pnp.envs.pnp_env import PnPEnv
 from pnp.legged_backend import LeggedMujocoBackend
-from pnp.locomotion import LOCO_OBS_DIM
+from pnp.locomotion import LOCO_OBS_DIM, LegServo
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.tasks import make_env, schedule_of
@@ -14,13 +14,14 @@ from pnp.training.trainer import train
 from tests.training._tiny import ROOT, TINY, compose_cfg
 
 MUJOCO_TINY = [o for o in TINY if not o.startswith("backend=")]
+SERVO = ["env.locomotion.leg_kp=250", "env.locomotion.leg_kd=5", "env.locomotion.action_scale=0.8"]
 
 
 @pytest.fixture(scope="module")
 def locomotion_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("loco") / "run"
     train(compose_cfg("train", [*MUJOCO_TINY, "experiment=locomotion", "env.nthread=1", "total_iterations=1",
-                                f"out_dir={out}"]))
+                                *SERVO, f"out_dir={out}"]))
     return out
 
 
@@ -40,7 +41,13 @@ def test_a_locomotion_checkpoint_drives_the_pnp_legs(locomotion_run):
     cfg = compose_cfg("train", [*MUJOCO_TINY, "backend=mujoco", "env.nthread=1", "env.num_worlds=2",
                                 "env.low_level=learned", f"env.low_level_checkpoint={locomotion_run}"])
     env = make_env(cfg.env, cfg.curriculum, seed=0)
-    assert isinstance(env.base_env.backend, LeggedMujocoBackend)
+    backend = env.base_env.backend
+    assert isinstance(backend, LeggedMujocoBackend)
+    # the legs run under the servos the leg policy was trained with
+    assert policy.servo == backend.servo == LegServo(250.0, 5.0, 0.8)
+    legs = backend.idx.leg_ctrl.reshape(-1)
+    assert (backend.model.actuator_gainprm[legs, 0] == 250.0).all()
+    assert (backend.model.actuator_biasprm[legs, 1:3] == [-250.0, -5.0]).all()
     td = env.rollout(2, break_when_any_done=False)
     assert td["next", "agents", "observation"].isfinite().all()
     env.close()

@@ -52,6 +52,7 @@ from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
 from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
+from pnp.training.table1_report import markdown  # noqa: E402
 from pnp.training.tasks import make_env  # noqa: E402
 
 register()
@@ -355,6 +356,7 @@ def run_table1(cfg: DictConfig) -> dict:
            "eval": OmegaConf.to_container(cfg.eval), "eval_kinematic": OmegaConf.to_container(cfg.eval_kinematic),
            "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
+    out.with_suffix(".md").write_text(markdown(doc))
     return doc
 
 

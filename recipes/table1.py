@@ -279,39 +279,49 @@ def summary_over_seeds(evals: list[dict], trials: int, backend: str) -> dict:
             "completion_time_mean_s": t_mean, "completion_time_std_s": t_std}
 
 
-def train(tcfg: DictConfig, method: str, seed: int) -> None:
+def train(tcfg: DictConfig) -> None:
     if not run_pipeline(tcfg)["finished"]:
-        raise SystemExit(f"stopped during {method} seed {seed} (a signal or the wall-time limit); rerun to resume")
+        raise SystemExit(f"stopped during {tcfg.out_dir} (a signal or the wall-time limit); rerun to resume")
 
 
 def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict], DictConfig, list]:
     """Train (or resume, or skip) one run and evaluate it: its record, its kinematic rows, its
-    full config and where its kinematic phases start. A finished run's record is kept in
-    ``cfg.records_dir`` and reused while the run's settings are unchanged."""
+    full config and where its kinematic phases start. A finished run's rows and evaluations
+    are kept in ``cfg.records_dir`` and reused while the run's and evaluations' settings hold."""
     tcfg, full = train_config(cfg, method, seed)
     path = Path(cfg.records_dir) / f"{method}_s{seed}.json"
+    evals = {"eval_kinematic": OmegaConf.to_container(cfg.eval_kinematic, resolve=True)}
+    if seed in cfg.mujoco_seeds:
+        evals["eval"] = OmegaConf.to_container(cfg.eval, resolve=True)
     kept = load_record(path, tcfg)
-    if kept is not None:
-        return kept["record"], kept["rows"], full, [tuple(p) for p in kept["phase_starts"]]
+    if kept is None or kept.get("eval_settings") != evals:
+        kept = finish_run(cfg, tcfg, full, evals)
+        save_record(path, tcfg, kept)
+    rows = kept["rows"]
+    record = {**efficiency(rows, cfg.thresholds, int(cfg.window)), **kept["record"]}
+    return record, rows, full, [tuple(p) for p in kept["phase_starts"]]
+
+
+def finish_run(cfg: DictConfig, tcfg: DictConfig, full: DictConfig, evals: dict) -> dict:
+    """Train (or resume) the run of ``tcfg`` and evaluate it: the payload of its record."""
     run = Path(tcfg.out_dir)
-    train(tcfg, method, seed)
+    train(tcfg)
     kin = kinematic_phases(full)
     rows = compact([r for r in run_rows(run) if r["phase"] in kin])
-    record = {**efficiency(rows, cfg.thresholds, int(cfg.window)), "wall_s": rows[-1]["wall_s"],
-              "frames": rows[-1]["frames"], "run": str(run),
+    record = {"wall_s": rows[-1]["wall_s"], "frames": rows[-1]["frames"], "run": str(run),
               "eval_kinematic": evaluate(run, phase_checkpoint(run, kin[-1]), cfg.eval_kinematic, "eval_kinematic")}
-    if seed in cfg.mujoco_seeds:
-        phases = load_state(run)
+    phases = load_state(run)
+    if "eval" in evals:
         record["eval"] = evaluate(run, phase_checkpoint(run, phases[-1]["name"]), cfg.eval, "eval")
         record["wall_s_all_phases"] = sum(p["wall_s"] for p in phases)
     if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
         record["subtasks"] = subtask_history(rows)
     starts, start = [], 0
-    for p in load_state(run)[: len(kin)]:
+    for p in phases[: len(kin)]:
         starts.append((start, p["name"]))
         start += p["frames"]
-    save_record(path, tcfg, {"record": record, "rows": rows, "phase_starts": starts})
-    return record, rows, full, starts
+    return {"record": record, "rows": rows, "phase_starts": starts, "eval_settings": evals,
+            "finished": provenance()}
 
 
 def run_table1(cfg: DictConfig) -> dict:

@@ -282,6 +282,11 @@ def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
     shutil.rmtree(tmp_path / "runs")
     kept = table1.run_table1(cfg)
     assert kept["methods"] == again["methods"] and not (tmp_path / "runs").exists()
+    # thresholds are read off the recorded rows: a new one needs no run folder either
+    cfg.thresholds, cfg.window = {"mean_end_stage": 0.0}, 1
+    first = table1.run_table1(cfg)["methods"]["dynamic"]["seeds"]["0"]["frames_to_stage_0"]
+    assert 0 < first < kept["methods"]["dynamic"]["seeds"]["0"]["frames"]
+    assert not (tmp_path / "runs").exists()
     # a record of other settings is not reused: that run trains again
     cfg.train = [*cfg.train, "loss.clip_epsilon=0.25"]
     cfg.methods, cfg.seeds, cfg.mujoco_seeds = ["dynamic"], [1], []

@@ -336,12 +336,11 @@ def run_table1(cfg: DictConfig) -> dict:
     for seed in cfg.seeds:
         for method in cfg.methods:
             done[method, int(seed)] = run_seed(cfg, method, int(seed))
-    methods, curves, budgets, phases = {}, {}, {}, []
+    methods, curves, budgets = {}, {}, {}
     for method in cfg.methods:
         seeds, curves[method] = {}, {}
         for seed in cfg.seeds:
-            seeds[str(seed)], curves[method][int(seed)], full, starts = done[method, int(seed)]
-            phases = phases or starts  # where each kinematic phase starts, for the plots' markers
+            seeds[str(seed)], curves[method][int(seed)], full, _ = done[method, int(seed)]
         kin = kinematic_phases(full)  # the method's pipeline is the same for every seed
         budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
         if len(set(budgets.values())) > 1:
@@ -358,6 +357,9 @@ def run_table1(cfg: DictConfig) -> dict:
     keys = [f"frames_to_{label(m, float(v))}" for m, v in cfg.thresholds.items()]
     r = ratios(methods, cfg.ours, keys)
     r_kin = ratios({m: {**v["kinematic"], "seeds": v["seeds"]} for m, v in methods.items()}, cfg.ours, keys)
+    # a phase start is marked where every run started it at the same frame (exit rules move them)
+    starts = [set(map(tuple, run[3])) for run in done.values()]
+    phases = sorted(set.intersection(*starts)) if starts else []
     pngs = plot_curves(curves, next(iter(budgets.values()))[1], int(cfg.curve_bins), phases, out)
     doc = {"methods": methods, "efficiency_ratio": r["efficiency"].get(keys[0]), "efficiency_ratios": r["efficiency"],
            "execution_time_ratio": r["execution_time"], "execution_time_ratio_kinematic": r_kin["execution_time"],

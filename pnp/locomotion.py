@@ -29,7 +29,8 @@ from mujoco import rollout
 from pnp.arm_closed_form import arm_ik
 from pnp.kinematics import clamp_reach
 from pnp.robot import (
-    ARM_JOINTS, ARM_RANGES, LEG_JOINTS, LEG_KD, LEG_KP, LEG_SPEED, LEG_TORQUE, LEGS, Quadruped, leg_ranges, stand_pose,
+    ARM_JOINTS, ARM_RANGES, LEG_JOINTS, LEG_KD, LEG_KP, LEG_SPEED, LEG_TORQUE, LEGS, Quadruped, leg_ranges,
+    leg_servo_params, stand_pose,
 )
 from pnp.scene import PHYSICS_DT, PnPArena
 from pnp.stage_graph import StageGraph
@@ -252,12 +253,11 @@ class LegServo:
     def apply(self, model: mujoco.MjModel, actuators) -> None:
         """Set these gains on leg actuators ``actuators`` (ids [..., 12], LEG_JOINTS order) of
         ``model``: force = kp (ctrl + q_stand - q) - kd qdot, as robot.py builds them."""
-        q0 = stand_pose()
+        params = leg_servo_params(self.kp, self.kd, stand_pose())
         for ids in np.asarray(actuators).reshape(-1, len(LEG_JOINTS)):
-            model.actuator_gainprm[ids, 0] = self.kp
-            model.actuator_biasprm[ids, 0] = self.kp * q0
-            model.actuator_biasprm[ids, 1] = -self.kp
-            model.actuator_biasprm[ids, 2] = -self.kd
+            model.actuator_gainprm[ids, 0] = params["gainprm"][0]
+            for k, column in enumerate(params["biasprm"]):
+                model.actuator_biasprm[ids, k] = column
 
 
 def fallen(height: torch.Tensor, gravity: torch.Tensor, min_height: float, max_tilt: float) -> torch.Tensor:

@@ -78,6 +78,11 @@ LEG_TORQUE = 80.0  # N m, ANYmal D (published, DESIGN.md "Robot model")
 LEG_SPEED = 8.5
 LEG_KP = 80.0  # N m/rad, legged_gym's ANYmal C (DESIGN.md "A learned low level")
 LEG_KD = 2.0  # N m s/rad, same source
+def leg_servo_params(kp, kd, q0) -> dict:
+    """A leg actuator's gain and bias at stand angle ``q0``: force = kp (ctrl + q0 - q) - kd qdot."""
+    return {"gainprm": (kp,), "biasprm": (kp * q0, -kp, -kd)}
+
+
 LEG_ARMATURE = 0.02  # kg m^2, ours: reflected drive inertia
 # Ranges of the left front leg (rad); right legs mirror HAA, hind legs HFE and KFE.
 HAA_RANGE = (-0.785, 0.611)  # published; mirrored for the right legs (ours)
@@ -223,7 +228,7 @@ class Quadruped(composer.Entity):
             # <position kp kv> with the target offset by the stand: force = kp (ctrl + q0 - q) - kd qdot.
             root.actuator.add(
                 "general", name=jn, joint=jn, gaintype="fixed", biastype="affine",
-                gainprm=(LEG_KP,), biasprm=(LEG_KP * q0, -LEG_KP, -LEG_KD), ctrlrange=(lo - q0, hi - q0),
+                **leg_servo_params(LEG_KP, LEG_KD, q0), ctrlrange=(lo - q0, hi - q0),
                 ctrllimited=True, forcerange=(-LEG_TORQUE, LEG_TORQUE), forcelimited=True,
             )
         for a, b in itertools.combinations(bodies, 2):

@@ -157,12 +157,8 @@ def phase_checkpoint(run: Path, name: str) -> Path:
     return phase_dir(run, index, name) / "checkpoint.pt"
 
 
-def evaluate(run: Path, ckpt: Path, ecfg: DictConfig, name: str) -> dict:
-    """``ckpt`` over ``ecfg.trials`` deterministic episodes; cached in the run folder as ``table1_<name>.json``."""
-    settings = {**OmegaConf.to_container(ecfg, resolve=True), "checkpoint": str(ckpt), "mtime": ckpt.stat().st_mtime}
-    cache = run / f"table1_{name}.json"
-    if cache.is_file() and json.loads(cache.read_text())["settings"] == settings:
-        return json.loads(cache.read_text())["result"]
+def evaluate(ckpt: Path, ecfg: DictConfig) -> dict:
+    """``ckpt`` over ``ecfg.trials`` deterministic episodes (kept in the run's record, not cached apart)."""
     overrides = {k: ecfg[k] for k in ("backend", "nthread", "start_range", "max_episode_steps")}
     pol = load_policy(ckpt, min(int(ecfg.num_worlds), int(ecfg.trials)), int(ecfg.seed), **overrides)
     t0 = time.monotonic()
@@ -170,9 +166,7 @@ def evaluate(run: Path, ckpt: Path, ecfg: DictConfig, name: str) -> dict:
     pol.env.close()
     keep = ("trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
             "mean_end_stage")
-    result = {**{k: summary[k] for k in keep}, "eval_wall_s": time.monotonic() - t0}
-    cache.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")
-    return result
+    return {**{k: summary[k] for k in keep}, "eval_wall_s": time.monotonic() - t0}
 
 
 def pooled_times(evals: list[dict]) -> tuple[float | None, float | None]:
@@ -309,10 +303,10 @@ def finish_run(cfg: DictConfig, tcfg: DictConfig, full: DictConfig, evals: dict)
     kin = kinematic_phases(full)
     rows = compact([r for r in run_rows(run) if r["phase"] in kin])
     record = {"wall_s": rows[-1]["wall_s"], "frames": rows[-1]["frames"], "run": str(run),
-              "eval_kinematic": evaluate(run, phase_checkpoint(run, kin[-1]), cfg.eval_kinematic, "eval_kinematic")}
+              "eval_kinematic": evaluate(phase_checkpoint(run, kin[-1]), cfg.eval_kinematic)}
     phases = load_state(run)
     if "eval" in evals:
-        record["eval"] = evaluate(run, phase_checkpoint(run, phases[-1]["name"]), cfg.eval, "eval")
+        record["eval"] = evaluate(phase_checkpoint(run, phases[-1]["name"]), cfg.eval)
         record["wall_s_all_phases"] = sum(p["wall_s"] for p in phases)
     if any("subtask" in r for r in rows):  # Bendikas et al.: how each sub-task ended
         record["subtasks"] = subtask_history(rows)

@@ -256,6 +256,9 @@ class PhaseConfig:
     rule measured in training, and a frame budget that ends it regardless."""
 
     overrides: Dict[str, Any] = field(default_factory=dict)
+    # Another phase's name: its overrides first, this phase's on top (a key set here replaces
+    # the other's value); the exit rule and budget stay this phase's own.
+    extends: Optional[str] = None
     exit: Optional[ExitRule] = None
     max_frames: int = 10_000_000
 

@@ -86,7 +86,27 @@ def pipeline_phases(cfg: DictConfig) -> list[tuple[str, DictConfig]]:
     if unknown:
         raise ValueError(f"pipeline names phases {unknown} that `phases` does not declare "
                          f"(declared: {sorted(cfg.phases)})")
-    return [(name, cfg.phases[name]) for name in cfg.pipeline]
+    return [(name, _resolved(cfg.phases, name)) for name in cfg.pipeline]
+
+
+def _resolved(phases: DictConfig, name: str) -> DictConfig:
+    """Phase ``name`` with the overrides of the phases it extends folded in, nearest last."""
+    chain = [name]
+    while phases[chain[-1]].get("extends") is not None:
+        parent = phases[chain[-1]].extends
+        if parent not in phases:
+            raise ValueError(f"phase {chain[-1]!r} extends {parent!r}, which `phases` does not declare "
+                             f"(declared: {sorted(phases)})")
+        if parent in chain:
+            raise ValueError(f"phases extend each other in a cycle: {' -> '.join(chain + [parent])}")
+        chain.append(parent)
+    phase = copy.deepcopy(phases[name])
+    merged = {}
+    for link in reversed(chain):
+        merged.update(OmegaConf.to_container(phases[link].overrides))
+    with open_dict(phase):
+        phase.overrides = merged
+    return phase
 
 
 def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig:

@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from pnp.box import DUAL_ROBOT_BOXES
 from pnp.terms import CONDITIONS
-from pnp.training.config import migrate
+from pnp.training.config import changed_settings, migrate
 from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy
 from pnp.training.tasks import TASKS, kinematic_options, make_env, stage_graph
@@ -133,3 +133,10 @@ def test_backward_edges_override_replaces_the_tasks_edges_and_names_bad_stages()
     assert graph.next_stage(stage, cond).item() == placed  # ... or not, without the edge
     with pytest.raises(ValueError, match="'lifted'"):
         stage_graph(compose_cfg("train", [*TINY, "curriculum.backward_edges=[[lifted,idle]]"]).curriculum)
+
+
+def test_the_near_pipelines_mujoco_phase_is_mujoco_explore_on_near_starts():
+    cfg = compose_cfg("train", ["experiment=single_pnp_pipeline_near", "out_dir=/nonexistent/run"])
+    near, explore = (phase_config(cfg, list(cfg.pipeline).index(n), None) for n in ("mujoco_near", "mujoco_explore"))
+    differ = changed_settings(near, explore, {"out_dir", "total_iterations"})
+    assert sorted(differ) == ["env.max_episode_steps", "env.start_range"]

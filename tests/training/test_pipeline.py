@@ -143,6 +143,20 @@ def test_a_mapping_override_adds_keys_to_a_free_form_map_but_not_to_a_typed_node
         phase_config(typed, 0, None)
 
 
+def test_a_phase_extends_another_phases_overrides_and_keeps_its_own_budget(tmp_path):
+    phases = ("++phases={a: {max_frames: 40, overrides: {env.start_range: [0.6, 1.5], env.max_episode_steps: 7}},"
+              "b: {extends: a, max_frames: 80, overrides: {env.max_episode_steps: 9}}}")
+    cfg = compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a,b]", phases])
+    pcfg = phase_config(cfg, 1, None)
+    assert (list(pcfg.env.start_range), pcfg.env.max_episode_steps) == ([0.6, 1.5], 9)
+    assert pcfg.total_iterations == 80 // cfg.collect.frames_per_batch
+    for bad, match in (("{a: {extends: b}, b: {extends: a}}", "cycle: a -> b -> a"),
+                       ("{a: {extends: nowhere}}", "extends 'nowhere'")):
+        cfg = compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a]", f"++phases={bad}"])
+        with pytest.raises(ValueError, match=match):
+            phase_config(cfg, 0, None)
+
+
 def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):
     out = run_pipeline(_cfg(tmp_path / "run"))
     result = evaluate_recipe.evaluate(compose_cfg("evaluate", [

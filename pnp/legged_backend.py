@@ -85,17 +85,19 @@ class LeggedMujocoBackend(MujocoBackend):
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, policy: LowLevelPolicy,
                  nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None,
                  servo: LegServo = LegServo()):
-        super().__init__(num_worlds, num_robots, box, nthread=nthread, physics_dt=physics_dt, finger_speed=finger_speed)
+        # Set before the scene is built: the physics copies the model once per world, so gains
+        # written into ``self.model`` afterwards would never reach the simulated servos.
         self.policy, self.servo = policy, servo  # the servo the leg policy was trained under
-        servo.apply(self.model, self.idx.leg_ctrl)
+        super().__init__(num_worlds, num_robots, box, nthread=nthread, physics_dt=physics_dt, finger_speed=finger_speed)
         self.decimation = int(round(LL_DT / physics_dt))
         if self.nsub % self.decimation:
             raise ValueError(f"HL step {HL_DT} s is not a whole number of LL ticks of {LL_DT} s at dt={physics_dt}")
         self.last_leg_action = torch.zeros(num_worlds, num_robots, len(LEG_JOINTS))
 
-    @staticmethod
-    def _build_scene(num_robots, box, physics_dt):
-        return build_legged_scene(num_robots, box, physics_dt)
+    def _build_scene(self, num_robots, box, physics_dt):
+        root, model, idx = build_legged_scene(num_robots, box, physics_dt)
+        self.servo.apply(model, idx.leg_ctrl)
+        return root, model, idx
 
     def _base_ctrl(self):
         return self.idx.leg_ctrl  # the legs move the base

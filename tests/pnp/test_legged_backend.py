@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.locomotion import LOCO_OBS_DIM, LOCO_OBS_FIELDS
+from pnp.locomotion import LOCO_OBS_DIM, LOCO_OBS_FIELDS, LegServo
 from pnp.legged_backend import LeggedMujocoBackend
 from tests.pnp._kinematic_helpers import _action, _layout
 
@@ -43,6 +43,19 @@ def test_standing_policy_holds_the_trunk_and_the_arm_tracks():
     # EE in the trunk frame near its command (the arm rides a standing, not a planar, trunk).
     rel = s.ee_pos[:, 0] - torch.cat([s.base[:, 0, :2], s.base_z], -1)
     assert (rel[:, 2] - (-0.2)).abs().max() < 0.05
+
+
+def test_the_leg_policys_servo_reaches_every_simulated_world():
+    # The physics steps one copy of the model per world: gains written into the backend's
+    # model after those copies were made never reached the servos (a kp 250 policy ran on
+    # kp 80 legs, sagged and fell).
+    servo = LegServo(kp=250.0, kd=6.0)
+    b = LeggedMujocoBackend(3, 2, BOX, Recorder(), nthread=1, servo=servo)
+    legs = b.idx.leg_ctrl.reshape(-1)
+    for m in [b.model, *b.physics.models]:
+        assert (m.actuator_gainprm[legs, 0] == 250.0).all()
+        assert (m.actuator_biasprm[legs, 1] == -250.0).all() and (m.actuator_biasprm[legs, 2] == -6.0).all()
+    b.close()
 
 
 def test_two_robots_each_get_their_own_observation():

@@ -45,11 +45,12 @@ def table_md(r: dict) -> str:
              f"{v['yaw_rate_error_mean'] or float('nan'):.3f} rad/s (after {v['settle_s']} s, over {v['measure_s']} s).", ""]
     delays = list(next(iter(r["ee_tracking"].values()))["ideal"]["after"])
     rows += ["| Base command | Low level | " + " | ".join(f"EE error after {d} (cm, mean / p90)" for d in delays)
-             + " | Trunk height (m) |", "| --- | --- | " + " | ".join("---" for _ in delays) + " | --- |"]
+             + " | Trunk height (m) | Falls |", "| --- | --- | " + " | ".join("---" for _ in delays) + " | --- | --- |"]
     for cmd, both in r["ee_tracking"].items():
         for name, e in both.items():
             cells = " | ".join(f"{_cm(e['after'][d]['mean_m'])} / {_cm(e['after'][d]['p90_m'])}" for d in delays)
-            rows.append(f"| {cmd} | {name} | {cells} | {e['trunk_height_mean_m']:.3f} |")
+            height = "-" if e["trunk_height_mean_m"] is None else f"{e['trunk_height_mean_m']:.3f}"
+            rows.append(f"| {cmd} | {name} | {cells} | {height} | {e.get('falls', '-')}/{e['worlds']} |")
     rows += ["", f"Pushes: {p['pushes']} kicks of {p['push_speed'][0]}-{p['push_speed'][1]} m/s every "
              f"{p['push_interval_s']:g} s over {p['episodes']} episodes of {p['seconds']:g} s with "
              f"{p['payload_kg'][0]}-{p['payload_kg'][1]} kg at the gripper: {p['falls']} falls "
@@ -90,7 +91,8 @@ def measure(cfg: DictConfig) -> dict:
         for name, make in backends.items():
             backend = make()
             try:
-                both[name] = ee_tracking(backend, int(e.switches), tuple(e.delays_s), float(e.hold_s), cmd, seed)
+                both[name] = ee_tracking(backend, int(e.switches), tuple(e.delays_s), float(e.hold_s), cmd, seed,
+                                         fall_height=float(base.fall_height))
             finally:
                 backend.close()
         tracking[", ".join(f"{x:+.2f}" for x in cmd)] = both

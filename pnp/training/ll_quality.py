@@ -140,13 +140,14 @@ def locomotion_settings(base, **changes) -> SimpleNamespace:
 
 
 def ee_tracking(backend: MujocoBackend, switches: int, delays_s=(0.1, 0.3, 1.0), hold_s: float = 1.0,
-                base_command=(0.0, 0.0, 0.0), seed: int = 0) -> dict:
+                base_command=(0.0, 0.0, 0.0), seed: int = 0, *, fall_height: float) -> dict:
     """EE position error after each of ``delays_s`` since the EE command jumped to a new random
     pose of the HL action's box, ``switches`` times per world, with the base commanded at
     ``base_command``. The target is the command in the level trunk frame (trunk position and
     yaw, no pitch or roll), where the high level's EE command lives: a trunk that pitches or
     rolls counts against the low level; its height is reported beside (``trunk_height_*``).
-    One robot; the box far away."""
+    A world whose trunk has been below ``fall_height`` counts as a fall, and its errors from
+    then on are left out, as in :func:`velocity_tracking`. One robot; the box far away."""
     g = torch.Generator().manual_seed(seed)
     n = backend.num_worlds
     box = SINGLE_ROBOT_BOXES[0]
@@ -160,6 +161,7 @@ def ee_tracking(backend: MujocoBackend, switches: int, delays_s=(0.1, 0.3, 1.0),
     action[..., :3] = torch.tensor(base_command, dtype=torch.float32)
     errors = {d: [] for d in delays_s}
     heights = []
+    fell = torch.zeros(n, dtype=torch.bool)
     for switch in range(switches + 1):  # the first hold only settles
         ee = lo + (hi - lo) * torch.rand(n, 4, generator=g)
         action[:, 0, 3:7] = ee
@@ -171,15 +173,19 @@ def ee_tracking(backend: MujocoBackend, switches: int, delays_s=(0.1, 0.3, 1.0),
                 base = s.base[:, 0]
                 origin = torch.cat([base[:, :2], s.base_z], -1)
                 target = origin + (yaw_rotation(base[:, 2]) @ clamp_reach(ee[:, :3]).unsqueeze(-1)).squeeze(-1)
-                errors[delays_s[delays.index(t)]].append((s.ee_pos[:, 0] - target).norm(dim=-1))
-                heights.append(s.base_z[:, 0])
+                fell |= s.base_z[:, 0] < fall_height
+                errors[delays_s[delays.index(t)]].append((s.ee_pos[:, 0] - target).norm(dim=-1)[~fell])
+                heights.append(s.base_z[~fell, 0])
     out = {}
     for d, e in errors.items():
         e = torch.cat(e)
-        out[f"{d:g}s"] = {"mean_m": float(e.mean()), "median_m": float(e.median()),
-                          "p90_m": float(torch.quantile(e, 0.9)), "samples": len(e)}
+        out[f"{d:g}s"] = {"mean_m": float(e.mean()) if len(e) else None, "median_m": float(e.median()) if len(e) else None,
+                          "p90_m": float(torch.quantile(e, 0.9)) if len(e) else None, "samples": len(e)}
+    heights = torch.cat(heights)
     return {"after": out, "switches": switches, "worlds": n, "hold_s": hold * HL_DT, "base_command": list(base_command),
-            "trunk_height_mean_m": float(torch.cat(heights).mean()), "trunk_height_std_m": float(torch.cat(heights).std())}
+            "falls": int(fell.sum()), "fall_height_m": fall_height,
+            "trunk_height_mean_m": float(heights.mean()) if len(heights) else None,
+            "trunk_height_std_m": float(heights.std()) if len(heights) > 1 else None}
 
 
 def command_grid(low, high, steps: int = 3) -> list[list[float]]:

@@ -64,11 +64,15 @@ def test_saturation_counts_torque_limits_and_range_ends():
 def test_ee_tracking_converges_on_both_low_levels():
     box = SINGLE_ROBOT_BOXES[0]
     for backend in (MujocoBackend(3, 1, box, nthread=1), LeggedMujocoBackend(3, 1, box, stand, nthread=1)):
-        r = ee_tracking(backend, switches=2, delays_s=(0.1, 1.0), hold_s=1.0)
-        backend.close()
+        r = ee_tracking(backend, switches=2, delays_s=(0.1, 1.0), hold_s=1.0, fall_height=LocomotionConfig().fall_height)
         early, late = r["after"]["0.1s"], r["after"]["1s"]
-        assert early["samples"] == late["samples"] == 6
+        assert early["samples"] == late["samples"] == 6 and r["falls"] == 0
         assert late["median_m"] < 0.05 < early["median_m"]  # a 0.1 s ramp covers a fraction of a jump
+        # A trunk below the fall height is a fall, and its errors are left out.
+        r = ee_tracking(backend, switches=1, delays_s=(0.1,), hold_s=0.2, fall_height=10.0)
+        backend.close()
+        assert r["falls"] == 3 and r["after"]["0.1s"]["samples"] == 0 and r["after"]["0.1s"]["mean_m"] is None
+        assert r["trunk_height_mean_m"] is None
 
 
 def test_settings_and_grid():

@@ -50,7 +50,7 @@ def table_md(r: dict) -> str:
         for name, e in both.items():
             cells = " | ".join(f"{_cm(e['after'][d]['mean_m'])} / {_cm(e['after'][d]['p90_m'])}" for d in delays)
             height = "-" if e["trunk_height_mean_m"] is None else f"{e['trunk_height_mean_m']:.3f}"
-            rows.append(f"| {cmd} | {name} | {cells} | {height} | {e.get('falls', '-')}/{e['worlds']} |")
+            rows.append(f"| {cmd} | {name} | {cells} | {height} | {e['falls']}/{e['worlds']} |")
     rows += ["", f"Pushes: {p['pushes']} kicks of {p['push_speed'][0]}-{p['push_speed'][1]} m/s every "
              f"{p['push_interval_s']:g} s over {p['episodes']} episodes of {p['seconds']:g} s with "
              f"{p['payload_kg'][0]}-{p['payload_kg'][1]} kg at the gripper: {p['falls']} falls "

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from pnp.layout import START_RANGE
 from pnp.scene import GOAL_RADIUS
-from pnp.task import ACTION_NAMES
+from pnp.task import ACTION_NAMES, OBS_FIELDS
 from pnp.terms import CONDITIONS, REWARD_TERMS, STAGES
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
@@ -44,7 +44,11 @@ from pnp.training.tasks import make_env
 
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
 FALL = REWARD_TERMS.index("fall")
-CAUSES = ("fall", "diverged", "dropped_box", "timeout")
+# tipped_box: the box lies unheld on its side (up axis beyond 60 deg) without having been
+# lifted and dropped; most MuJoCo timeouts of run 6 ended so (docs/pipeline_single/failures.md).
+CAUSES = ("fall", "diverged", "dropped_box", "tipped_box", "timeout")
+TIPPED_COS = 0.5
+_BOX_X, _BOX_Y = OBS_FIELDS["object"]["box_x_axis"], OBS_FIELDS["object"]["box_y_axis"]
 _AI = ACTION_NAMES.index
 ACTION_GROUPS = {"base": slice(_AI("base_vx"), _AI("base_wz") + 1), "ee": slice(_AI("ee_x"), _AI("ee_yaw") + 1),
                  "grip": slice(_AI("grasp"), _AI("grasp") + 1), "all": slice(0, len(ACTION_NAMES))}
@@ -132,16 +136,18 @@ def classify_failures(nxt: TensorDictBase, worlds: torch.Tensor, lifted: torch.T
         box_goal = (agents["object"][worlds, 0, :2] - agents["goal"][worlds, 0, :2]).norm(dim=-1)
         held = agents["stage_conditions"][worlds][..., GRABBED].any(-1)
         dropped = lifted[worlds] & ~held & (box_goal >= GOAL_RADIUS)
+        x, y = agents["object"][worlds, 0, _BOX_X], agents["object"][worlds, 0, _BOX_Y]  # base frame: yawed only
+        tipped = ~held & (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0] < TIPPED_COS)  # (x cross y)_z: cos of the tilt
         fell = agents["reward_terms"][worlds][..., FALL].bool().any(-1)
     else:  # no box, no fall term (EE tracking)
-        dropped = fell = torch.zeros(len(worlds), dtype=torch.bool)
+        dropped = tipped = fell = torch.zeros(len(worlds), dtype=torch.bool)
     causes = []
     for i, w in enumerate(worlds.tolist()):
         if bool(nxt["success"][w, 0]):
             causes.append(None)
             continue
         flags = {"fall": bool(fell[i]) and bool(nxt["terminated"][w, 0]), "diverged": bool(nxt["diverged"][w, 0]),
-                 "dropped_box": bool(dropped[i])}
+                 "dropped_box": bool(dropped[i]), "tipped_box": bool(tipped[i])}
         causes.append(next((c for c in CAUSES[:-1] if flags[c]), "timeout"))
     return causes
 

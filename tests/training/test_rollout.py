@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import pytest
@@ -53,7 +54,7 @@ def test_scripted_policy_trials_add_up():
     assert ends == sorted(ends) and max(sum(r["world"] == w for r in records) for w in range(4)) <= 2
 
 
-def _cause(success=False, fell=False, terminated=False, grabbed=False, box_goal=2.0, lifted=True):
+def _cause(success=False, fell=False, terminated=False, grabbed=False, box_goal=2.0, lifted=True, tilt=0.0):
     """The cause given to a one-world episode that ended with these flags."""
     cond = torch.zeros(1, 1, len(CONDITIONS), dtype=torch.bool)
     cond[..., CONDITIONS.index("object_grabbed")] = grabbed
@@ -61,6 +62,8 @@ def _cause(success=False, fell=False, terminated=False, grabbed=False, box_goal=
     terms[..., REWARD_TERMS.index("fall")] = float(fell)
     obj, goal = torch.zeros(1, 1, 30), torch.zeros(1, 1, 3)
     obj[..., 0] = box_goal
+    obj[..., 3] = 1.0  # box x axis; y axis tilted about it by ``tilt`` (rad)
+    obj[..., 7], obj[..., 8] = math.cos(tilt), math.sin(tilt)
     agents = TensorDict({"stage_conditions": cond, "reward_terms": terms, "object": obj, "goal": goal},
                         batch_size=(1, 1))
     flag = lambda v: torch.full((1, 1), v)  # noqa: E731
@@ -76,6 +79,10 @@ def _cause(success=False, fell=False, terminated=False, grabbed=False, box_goal=
     ({"box_goal": 0.2}, "timeout"),  # set down inside the goal, not released
     ({"grabbed": True}, "timeout"),  # still held at 45 s
     ({"lifted": False}, "timeout"),  # never lifted
+    ({"lifted": False, "tilt": 1.2}, "tipped_box"),  # knocked over, on its side
+    ({"lifted": False, "tilt": 0.9}, "timeout"),  # leaning, within 60 deg
+    ({"lifted": False, "tilt": 1.5, "grabbed": True}, "timeout"),  # held tilted: hanging from a handle
+    ({"tilt": 1.5}, "dropped_box"),  # lifted, then dropped on its side
 ])
 def test_failure_causes(kwargs, cause):
     assert _cause(**kwargs) == cause

@@ -5,11 +5,17 @@ import json
 import sys
 
 import pytest
+import torch
+from tensordict import TensorDict
+
+from pnp.task import OBS_FIELDS
+from pnp.terms import CONDITIONS
 
 from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
 import grasp_losses  # noqa: E402
+import knock_overs  # noqa: E402
 import profile_iteration  # noqa: E402
 
 
@@ -22,6 +28,41 @@ def test_grasp_losses_counts_and_writes_provenance(tmp_path):
     assert saved["worlds"] == 3 and saved["env"] == {"handle_claim": True}
     assert min(saved["grasps_ended_opened"], saved["grasps_lost_closed"], saved["grasp_steps_kept"]) >= 0
     assert 0.0 <= saved["world_lifted"] <= 1.0 and saved["commit"] and saved["machine"]
+
+
+def _step_td(up_z: list[float], held: list[bool], stage: list[int], grasp: list[float]) -> TensorDict:
+    """Two worlds' step output with the box tilted to ``up_z`` = cos(tilt) about its x axis."""
+    n = len(up_z)
+    obj, ego = torch.zeros(n, 1, 30), torch.zeros(n, 1, 31)
+    obj[:, 0, 3] = 1.0
+    obj[:, 0, 7], obj[:, 0, 8] = torch.tensor(up_z), (1 - torch.tensor(up_z) ** 2).sqrt()
+    ego[:, 0, OBS_FIELDS["ego"]["last_action"].start + 7] = torch.tensor(grasp)
+    cond = torch.zeros(n, 1, len(CONDITIONS), dtype=torch.bool)
+    cond[:, 0, CONDITIONS.index("object_grabbed")] = torch.tensor(held)
+    agents = TensorDict({"object": obj, "ego": ego, "stage_conditions": cond,
+                         "stage": torch.tensor(stage).view(n, 1, 1)}, batch_size=(n, 1))
+    return TensorDict({"agents": agents}, batch_size=(n,))
+
+
+def test_knock_overs_counts_tips_after_lie_steps_and_s0_toggles():
+    hook = knock_overs.KnockOvers(2, tilt_rad=1.0, lie_steps=3)
+    # World 0: on its side (cos 0.1), unheld, for 3 steps; world 1: upright, or on its side but held.
+    for step, grasp in enumerate([0.0, 1.0, 0.0]):
+        hook.after_step(None, _step_td([0.1, 1.0 if step < 2 else 0.1], [False, step == 2], [0, 1], [grasp, grasp]))
+    assert [hook.record(w)["tipped"] for w in (0, 1)] == [True, False]
+    assert [hook.record(w)["s0_toggles"] for w in (0, 1)] == [2, 0]  # world 1 is in S1
+    assert hook.record(0)["s0_steps"] == 3
+    hook.reset(torch.tensor([True, False]))
+    assert hook.record(0) == {"tipped": False, "s0_toggles": 0, "s0_steps": 0}
+
+
+def test_knock_overs_writes_its_summary(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    out = knock_overs.main([f"checkpoint={tmp_path / 'run'}/checkpoint.pt", f"out={tmp_path / 'k.json'}",
+                            "trials=3", "env.num_worlds=3", "env.max_episode_steps=5"])
+    assert json.loads((tmp_path / "k.json").read_text()) == json.loads(json.dumps(out))
+    assert out["trials"] == 3 and 0 <= out["tipped_and_succeeded"] <= out["tipped_trials"] <= 3
+    assert set(out["failure_causes"]) >= {"tipped_box", "timeout"} and out["commit"] and out["machine"]
 
 
 def test_profile_iteration_splits_the_time(tmp_path):

@@ -47,7 +47,7 @@ FALL = REWARD_TERMS.index("fall")
 # tipped_box: the box lies unheld on its side (up axis beyond 60 deg) without having been
 # lifted and dropped; most MuJoCo timeouts of run 6 ended so (docs/pipeline_single/failures.md).
 CAUSES = ("fall", "diverged", "dropped_box", "tipped_box", "timeout")
-TIPPED_COS = 0.5
+TIPPED_TILT = math.pi / 3  # rad
 _BOX_X, _BOX_Y = OBS_FIELDS["object"]["box_x_axis"], OBS_FIELDS["object"]["box_y_axis"]
 _AI = ACTION_NAMES.index
 ACTION_GROUPS = {"base": slice(_AI("base_vx"), _AI("base_wz") + 1), "ee": slice(_AI("ee_x"), _AI("ee_yaw") + 1),
@@ -128,6 +128,13 @@ def check_groups(sample) -> tuple[str, ...]:
     return groups
 
 
+def box_up_z(obj: torch.Tensor) -> torch.Tensor:
+    """cos of the box's tilt from object blocks ``[..., 30]``: (x axis cross y axis)_z, which a
+    base frame (yawed only) keeps as the world's."""
+    x, y = obj[..., _BOX_X], obj[..., _BOX_Y]
+    return x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]
+
+
 def classify_failures(nxt: TensorDictBase, worlds: torch.Tensor, lifted: torch.Tensor) -> list[str | None]:
     """The failure cause of each world in ``worlds`` whose episode ended at this step
     (``None`` for a success); ``lifted`` [N]: the box was lifted in the episode."""
@@ -136,8 +143,7 @@ def classify_failures(nxt: TensorDictBase, worlds: torch.Tensor, lifted: torch.T
         box_goal = (agents["object"][worlds, 0, :2] - agents["goal"][worlds, 0, :2]).norm(dim=-1)
         held = agents["stage_conditions"][worlds][..., GRABBED].any(-1)
         dropped = lifted[worlds] & ~held & (box_goal >= GOAL_RADIUS)
-        x, y = agents["object"][worlds, 0, _BOX_X], agents["object"][worlds, 0, _BOX_Y]  # base frame: yawed only
-        tipped = ~held & (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0] < TIPPED_COS)  # (x cross y)_z: cos of the tilt
+        tipped = ~held & (box_up_z(agents["object"][worlds, 0]) < math.cos(TIPPED_TILT))
         fell = agents["reward_terms"][worlds][..., FALL].bool().any(-1)
     else:  # no box, no fall term (EE tracking)
         dropped = tipped = fell = torch.zeros(len(worlds), dtype=torch.bool)

@@ -4,7 +4,8 @@
         out=runs/knock_overs.json trials=200 seed=777 env.num_worlds=200
 
 Per trial (``pnp.training.rollout.run_trials``): whether the box lay unheld with its up axis
-beyond ``tilt_rad`` for ``lie_steps`` steps in a row (tipped), and how often the gripper
+beyond ``tilt_rad`` (default: the ``tipped_box`` failure's 60 deg) for ``lie_steps`` steps in a
+row (tipped), and how often the gripper
 command changed between consecutive steps while the robot was in S0 (toggles). Reports the
 tipped trials and how many of them still succeeded, the toggles per S0 step, and the mean
 steps of successes with and without a tip (docs/pipeline_single/failures.md: run 6's
@@ -23,15 +24,12 @@ import torch
 from omegaconf import OmegaConf
 
 from pnp.task import OBS_FIELDS
-from pnp.terms import CONDITIONS
 from pnp.training.keys import STAGE
 from pnp.training.provenance import provenance
-from pnp.training.rollout import load_policy, run_trials, summarise
+from pnp.training.rollout import GRABBED, TIPPED_TILT, box_up_z, load_policy, run_trials, summarise
 
-GRABBED = CONDITIONS.index("object_grabbed")
-_BOX_X, _BOX_Y = OBS_FIELDS["object"]["box_x_axis"], OBS_FIELDS["object"]["box_y_axis"]
 _GRASP_CMD = OBS_FIELDS["ego"]["last_action"].start + 7  # the action just taken: its grasp entry
-DEFAULTS = {"checkpoint": None, "out": "runs/knock_overs.json", "trials": 200, "seed": 777, "tilt_rad": 1.0,
+DEFAULTS = {"checkpoint": None, "out": "runs/knock_overs.json", "trials": 200, "seed": 777, "tilt_rad": TIPPED_TILT,
             "lie_steps": 5, "env": {"num_worlds": 100}}
 
 
@@ -48,9 +46,8 @@ class KnockOvers:
 
     def after_step(self, env, nxt) -> None:
         agents = nxt["agents"]
-        x, y = agents["object"][:, 0, _BOX_X], agents["object"][:, 0, _BOX_Y]  # base frame: yawed only
         held = agents["stage_conditions"][..., GRABBED].any(-1)
-        down = ~held & (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0] < self.cos)  # (x cross y)_z = cos(tilt)
+        down = ~held & (box_up_z(agents["object"][:, 0]) < self.cos)
         self.lying = torch.where(down, self.lying + 1, torch.zeros_like(self.lying))
         self.tipped |= self.lying >= self.lie_steps
         cmd = (agents["ego"][..., _GRASP_CMD] > 0.5).any(-1).float()

@@ -82,3 +82,12 @@ def test_profile_iteration_compares_thread_splits(tmp_path):
     assert [(r["collect_threads"], r["update_threads"]) for r in out["runs"]] == [(1, 2)]
     with pytest.raises(ValueError, match="threads='1-2'"):
         profile_iteration.main(["backend=kinematic", "threads=1-2"])
+
+
+@pytest.mark.parametrize("method", ["erskine", "bendikas"])
+def test_profile_iteration_runs_the_per_stage_baselines(tmp_path, method):
+    # Their rewards and loss are the trainer's (per-stage reward columns, Erskine's critics).
+    out = profile_iteration.main([f"experiment=table1_{method}", "env.num_worlds=4", "collect.frames_per_batch=16",
+                                  "collect.minibatch_size=8", "model.actor_cells=[16]", "model.critic_cells=[16]",
+                                  "iterations=1", f"out={tmp_path / 'p.json'}"])
+    assert out["frames_per_iteration"] == 16 and out["ppo_update_s"] > 0

@@ -42,10 +42,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from pnp.terms import STAGES  # noqa: E402
-from pnp.training.baselines import use_baseline_schedule  # noqa: E402
 from pnp.training.collect import windowed_mean  # noqa: E402
 from pnp.training.config import register  # noqa: E402
-from pnp.training.models import make_models  # noqa: E402
 from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
@@ -53,7 +51,7 @@ from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E40
 from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
 from pnp.training.table1_report import markdown  # noqa: E402
-from pnp.training.tasks import make_env  # noqa: E402
+from pnp.training.trainer import make_training  # noqa: E402
 
 register()
 
@@ -250,9 +248,7 @@ def plot_curves(curves: dict[str, dict[int, list[dict]]], budget: int, bins: int
 def method_parameters(tcfg: DictConfig) -> dict[str, int]:
     """Trainable parameters of the method's actor and critic (a 1-world kinematic env for the shapes)."""
     cfg = OmegaConf.merge(tcfg, {"env": {"num_worlds": 1, "backend": "kinematic"}})
-    env = make_env(cfg.env, cfg.curriculum, 0)
-    use_baseline_schedule(env, cfg)
-    models = make_models(cfg.model, cfg.loss, env)
+    env, models, _ = make_training(cfg)
     env.close()
     return parameter_count(models.actor_net, models.critic_net)
 

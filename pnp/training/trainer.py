@@ -59,6 +59,17 @@ def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = Po
     return loss
 
 
+def make_training(cfg: DictConfig):
+    """``(env, models, loss)`` of a run configuration: the env with the per-stage baselines'
+    reward schedule (``model.per_stage``), their models and their loss, or ours. One place,
+    so that the trainer, the profiler and Table I's parameter count build the same thing."""
+    env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
+    use_baseline_schedule(env, cfg)
+    models = make_models(cfg.model, cfg.loss, env)
+    loss_cls, loss_kwargs = baseline_loss(cfg)
+    return env, models, make_loss(cfg.loss, models, loss_cls, **loss_kwargs)
+
+
 def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
     """The configuration to run: ``cfg`` itself, or with ``resume`` set, the checkpoint's
     (migrated to the schema) with only :data:`RESUME_OVERRIDES` taken from ``cfg``."""
@@ -139,11 +150,7 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
         seed_everything(int(cfg.seed))
-        self.env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
-        use_baseline_schedule(self.env, cfg)  # the per-stage baselines' rewards (model.per_stage)
-        self.models = make_models(cfg.model, cfg.loss, self.env)
-        loss_cls, loss_kwargs = baseline_loss(cfg)
-        self.loss = make_loss(cfg.loss, self.models, loss_cls, **loss_kwargs)
+        self.env, self.models, self.loss = make_training(cfg)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
         if cfg.model.per_stage == "bendikas":
             self.subtasks = SequentialSchedule(cfg.baseline.bendikas, schedule_of(self.env), self.models.actor_net,

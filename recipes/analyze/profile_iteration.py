@@ -20,24 +20,17 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensordict.nn import InteractionType, set_interaction_type
 
-from pnp.training.baselines import baseline_loss, use_baseline_schedule
 from pnp.training.config import register
 from pnp.training.ppo import ppo_update
 from pnp.training.provenance import provenance
-from pnp.training.models import make_models
-from pnp.training.tasks import make_env
-from pnp.training.trainer import make_loss
+from pnp.training.trainer import make_training
 
 CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "config")
 
 
 def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1) -> dict:
     torch.manual_seed(int(cfg.seed))
-    env = make_env(cfg.env, cfg.curriculum, int(cfg.seed))
-    use_baseline_schedule(env, cfg)  # the per-stage baselines' rewards, as the trainer does
-    models = make_models(cfg.model, cfg.loss, env)
-    loss_cls, loss_kwargs = baseline_loss(cfg)
-    loss = make_loss(cfg.loss, models, loss_cls, **loss_kwargs)
+    env, models, loss = make_training(cfg)
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
     carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}

@@ -13,6 +13,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from pnp.losses.erskine import CooperativeMAPPOLoss
+from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.terms import REWARD_TABLE, REWARD_TERMS, STAGE_GATES, TERM_STAGE
 from pnp.training.baselines import use_baseline_schedule
 from pnp.training.checkpoint import load_checkpoint
@@ -23,6 +25,7 @@ from pnp.training.rollout import load_policy, run_trials
 from pnp.training.sequential import SequentialSchedule
 from pnp.training.stage_ensemble import StageEnsemble, parameter_count
 from pnp.training.tasks import make_env, schedule_args, schedule_of
+from pnp.training.trainer import make_training
 from pnp.transforms.baselines import SequentialSubtask, StageRewards
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
@@ -207,6 +210,24 @@ def test_parameter_counts():
     assert counts["erskine"]["inference"] == counts["erskine"]["actor"] == 7 * ours["actor"]
     assert counts["bendikas"]["critic"] == 7 * (ours["critic"] - 2) + 2  # PopArt's weight and bias once
     assert counts["erskine"]["critic"] == 7 * ours["critic"]  # and one PopArt pair per stage
+
+
+@pytest.mark.parametrize("per_stage, schedule, loss_cls", [
+    ("none", "AdaptiveRewardScaling", PopArtMAPPOLoss), ("bendikas", "SequentialSubtask", PopArtMAPPOLoss),
+    ("erskine", "StageRewards", CooperativeMAPPOLoss)])
+def test_make_training_builds_each_methods_reward_schedule_and_loss(per_stage, schedule, loss_cls):
+    # The trainer, profile_iteration and table1 all build a run through make_training.
+    extra = [] if per_stage == "none" else [*BENDIKAS[1:], f"model.per_stage={per_stage}"]
+    env, models, loss = make_training(compose_cfg("train", [*TINY, *extra]))
+    try:
+        assert type(env.transform[-1]).__name__ == schedule
+        assert type(loss) is loss_cls
+        if per_stage == "erskine":
+            assert loss.mix == 0.5  # baseline.erskine.mix reaches the loss
+        # the loss optimises the models it was given
+        assert {id(p) for p in models.actor_net.parameters()} <= {id(p) for p in loss.parameters()}
+    finally:
+        env.close()
 
 
 def test_thresholds_count_only_the_whole_task():

@@ -6,7 +6,8 @@ mix of its own and the next sub-task's critic, so that it hands over in states t
 policy values. The original is off-policy (soft Q-functions, ``(1 - c) Q_i + c Q_{i+1}``).
 Our on-policy reading: critic i is a state-value function of stage i's reward (the
 ``StageRewards`` columns: stage i's terms and R_fixed, paid while the robot is in stage
-i), every critic values every state, one GAE per critic gives ``A_i``, and each sample's
+i, and with ``completed_share`` stage i's best step in every later stage), every critic
+values every state, one GAE per critic gives ``A_i``, and each sample's
 policy-gradient advantage is that of its stage s,
 
     A = (1 - c) A_s + c A_{s+1}        (A_{s+1} := A_s in the last stage),

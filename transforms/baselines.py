@@ -39,14 +39,40 @@ class StageRewards(FixedScales):
     """The fixed-scale reward, plus each stage's reward in its own column.
 
     Writes ``stage_rewards_key``, float ``[*B, A, n_stages]``: column i is R_fixed plus
-    ``sum_j mu_j r_j`` over the terms of stage i while the robot is in stage i, and 0 in
-    every other stage. A term is thus paid only in its own stage, as LiuMax/LiuMin activate
-    it, and every stage's sub-task pays its own penalties. ``reward_key`` keeps the
-    FixedScales reward (logged; Erskine's loss reads the columns).
+    ``sum_j mu_j r_j`` over the terms of stage i while the robot is in stage i; in every
+    stage above i it is ``completed_share * sum_j mu_j max(high_j, 0)`` over stage i's terms
+    (a completed sub-task keeps paying its best step), and 0 below i. A term is thus paid
+    only in its own stage, as LiuMax/LiuMin activate it, and every stage's sub-task pays its
+    own penalties. ``reward_key`` keeps the FixedScales reward (logged; Erskine's loss reads
+    the columns).
+
+    Why the completed pay: the stage terms are positive, so with 0 above i critic i values
+    hovering in stage i forever over completing it (Erskine et al.'s sub-task critics end at
+    completion; their rewards were not positive kernels). Paid per step rather than once,
+    a robot that falls back loses it again, so re-entering a stage earns nothing twice.
+    ``completed_share=0`` is the column without it.
+
+    Args:
+        high: upper bound of every stage-wise term's raw value (``pnp.terms.REWARD_TABLE``);
+            needed when ``completed_share > 0``.
+        completed_share: the share of a stage's best step paid above it.
+        **cfg: the :class:`~pnp.transforms.StageRewardSchedule` arguments.
     """
 
-    def __init__(self, *, stage_rewards_key: NestedKey = ("agents", "stage_rewards"), **cfg):
+    def __init__(self, *, high: Mapping[str, float] | None = None, completed_share: float = 0.0,
+                 stage_rewards_key: NestedKey = ("agents", "stage_rewards"), **cfg):
         super().__init__(**cfg)
+        if not completed_share >= 0.0:
+            raise ValueError(f"completed_share must be >= 0, got {completed_share}")
+        best = torch.zeros(len(self.stage_term_names))
+        if completed_share > 0.0:
+            if high is None:
+                raise ValueError("completed_share > 0 needs `high`, the bound of every stage-wise term")
+            staged = {n: v for n, v in high.items() if n in self.mu}
+            _check_exact("high", staged, self.stage_term_names)
+            best = torch.tensor([self.mu[n] * max(float(staged[n]), 0.0) for n in self.stage_term_names])
+        completed = torch.zeros(self.n_stages).index_add_(0, self._term_stage.cpu(), best) * float(completed_share)
+        self.register_buffer("_completed", completed, persistent=False)
         self.stage_rewards_key = unravel_key(stage_rewards_key)
         self.out_keys = [*self.out_keys, self.stage_rewards_key]
 
@@ -57,7 +83,8 @@ class StageRewards(FixedScales):
         own = terms.new_zeros(*stage.shape, self.n_stages).index_add_(-1, self._term_stage, staged)
         fixed = (self._fixed_w.to(terms.dtype) * terms[..., self._fixed_idx]).sum(-1, keepdim=True)
         here = torch.nn.functional.one_hot(stage, self.n_stages).to(terms.dtype)
-        return here * (own + fixed)
+        above = (torch.arange(self.n_stages, device=stage.device) < stage.unsqueeze(-1)).to(terms.dtype)
+        return here * (own + fixed) + above * self._completed.to(terms.dtype)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict = super()._step(tensordict, next_tensordict)

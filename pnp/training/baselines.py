@@ -54,7 +54,7 @@ def use_baseline_schedule(env: TransformedEnv, cfg: DictConfig) -> None:
         schedule = SequentialSubtask(high=kwargs["high"], gamma=float(cfg.loss.gamma),
                                      success_bonus=float(cfg.baseline.bendikas.success_bonus), **base)
     else:
-        schedule = StageRewards(**base)
+        schedule = StageRewards(high=kwargs["high"], completed_share=float(cfg.baseline.erskine.completed_share), **base)
     env.transform.pop()
     env.append_transform(schedule)
 

@@ -218,6 +218,9 @@ class CooperativeConfig:
     """Erskine et al.: policy i maximises ``(1 - mix) A_i + mix A_{i+1}``."""
 
     mix: float = 0.5
+    # Critic i's reward in stages above i: this share of stage i's best step, sum_j mu_j high_j
+    # over its terms (pnp.transforms.baselines.StageRewards); 0: nothing once stage i is left.
+    completed_share: float = 0.0
 
 
 @dataclass

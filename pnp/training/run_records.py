@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.training.config import changed_settings
+from pnp.training.config import changed_settings, migrate
 from pnp.training.pipeline import _RESUMABLE
 
 # The rows' columns a comparison reads (curves, thresholds, Bendikas' sub-task ends).
@@ -32,7 +32,7 @@ def load_record(path: Path, cfg: DictConfig) -> dict | None:
         return None
     try:
         saved = json.loads(path.read_text())
-        then = OmegaConf.create(saved["config"])
+        then = migrate(saved["config"])  # keys added since hold their defaults
         payload = saved["record"]
     except (ValueError, KeyError, TypeError) as err:
         raise ValueError(f"{path}: not a run record ({err!r}); move it away to retrain that run") from err

@@ -101,6 +101,25 @@ def test_stage_rewards_pay_each_stage_in_its_own_column():
                                                                                  (0, 2, 5)]))
 
 
+def test_a_completed_stage_keeps_paying_its_best_step_in_its_column():
+    _, kw = schedule_args(compose_cfg("train", ["curriculum.schedule=fixed"]).curriculum)
+    high = kw["high"]
+    t = _schedule(StageRewards, high=high, completed_share=0.5)
+    terms = torch.full((3, 1, len(REWARD_TERMS)), 0.25)
+    cols = t(_step([0, 2, 6], terms))["next"]["agents", "stage_rewards"].reshape(3, 7)
+    plain = _schedule(StageRewards)(_step([0, 2, 6], terms))["next"]["agents", "stage_rewards"].reshape(3, 7)
+    best = [0.5 * sum(MU[n] * max(high[n], 0.0) for n, s in TERM_STAGE.items() if s == i) for i in range(7)]
+    for world, stage in enumerate([0, 2, 6]):
+        expected = plain[world].clone()
+        expected[:stage] = torch.tensor(best[:stage])  # below: completed; its own: as without; above: 0
+        torch.testing.assert_close(cols[world], expected)
+    assert best[1] == 0.5 * (20.0 + 10.0 + 0.2)  # S1: grasp pose, grabbed, grab action at their highs
+    with pytest.raises(ValueError, match="completed_share > 0 needs `high`"):
+        _schedule(StageRewards, completed_share=1.0)
+    with pytest.raises(ValueError, match="completed_share must be >= 0, got -1"):
+        _schedule(StageRewards, high=high, completed_share=-1.0)
+
+
 def _bendikas(*extra, max_frames=100, window=2):
     torch.manual_seed(0)
     cfg = compose_cfg("train", [*TINY, *BENDIKAS, f"baseline.bendikas.max_frames={max_frames}",

@@ -35,6 +35,13 @@ def _active_terms(schedule: FixedScales, terms: torch.Tensor, stage: torch.Tenso
     return terms * (stage.unsqueeze(-1) >= schedule._gate).to(terms.dtype)
 
 
+def _best_steps(schedule: FixedScales, high: Mapping[str, float]) -> torch.Tensor:
+    """``mu_j max(high_j, 0)`` per stage-wise term of ``schedule`` (its best step's share)."""
+    staged = {n: v for n, v in high.items() if n in schedule.mu}
+    _check_exact("high", staged, schedule.stage_term_names)
+    return torch.tensor([schedule.mu[n] * max(float(staged[n]), 0.0) for n in schedule.stage_term_names])
+
+
 class StageRewards(FixedScales):
     """The fixed-scale reward, plus each stage's reward in its own column.
 
@@ -68,9 +75,7 @@ class StageRewards(FixedScales):
         if completed_share > 0.0:
             if high is None:
                 raise ValueError("completed_share > 0 needs `high`, the bound of every stage-wise term")
-            staged = {n: v for n, v in high.items() if n in self.mu}
-            _check_exact("high", staged, self.stage_term_names)
-            best = torch.tensor([self.mu[n] * max(float(staged[n]), 0.0) for n in self.stage_term_names])
+            best = _best_steps(self, high)
         completed = torch.zeros(self.n_stages).index_add_(0, self._term_stage.cpu(), best) * float(completed_share)
         self.register_buffer("_completed", completed, persistent=False)
         self.stage_rewards_key = unravel_key(stage_rewards_key)
@@ -130,9 +135,7 @@ class SequentialSubtask(FixedScales):
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
         if not success_bonus >= 0.0:
             raise ValueError(f"success_bonus must be >= 0, got {success_bonus}")
-        staged = {n: v for n, v in high.items() if n in self.mu}
-        _check_exact("high", staged, self.stage_term_names)
-        best = torch.tensor([self.mu[n] * max(float(staged[n]), 0.0) for n in self.stage_term_names])
+        best = _best_steps(self, high)
         bonus = [success_bonus * float(best[self._term_stage <= k].sum()) / (1.0 - gamma) for k in range(self.n_stages)]
         self.register_buffer("_bonus", torch.tensor(bonus), persistent=False)
         self.done_key, self.terminated_key = unravel_key(done_key), unravel_key(terminated_key)

@@ -44,7 +44,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from pnp.terms import STAGES  # noqa: E402
 from pnp.training.collect import windowed_mean  # noqa: E402
 from pnp.training.config import register  # noqa: E402
-from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline  # noqa: E402
+from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline, total_frames  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
@@ -97,7 +97,7 @@ def train_config(cfg: DictConfig, method: str, seed: int) -> tuple[DictConfig, D
 def budget_frames(tcfg: DictConfig) -> int:
     if not tcfg.pipeline:
         raise ValueError("experiment=table1_<method> must declare a pipeline (its phases and frame budget)")
-    return sum(int(p.max_frames) for _, p in pipeline_phases(tcfg))
+    return total_frames(tcfg)
 
 
 def run_rows(run: Path) -> list[dict]:
@@ -332,7 +332,7 @@ def run_table1(cfg: DictConfig) -> dict:
         for seed in cfg.seeds:
             seeds[str(seed)], curves[method][int(seed)], full, _ = done[method, int(seed)]
         kin = kinematic_phases(full)  # the method's pipeline is the same for every seed
-        budgets[method] = (budget_frames(full), sum(int(p.max_frames) for n, p in pipeline_phases(full) if n in kin))
+        budgets[method] = (budget_frames(full), total_frames(full, kin))
         if len(set(budgets.values())) > 1:
             raise ValueError(f"the methods must share one frame budget (all phases, kinematic ones); got {budgets}")
         table = summary_over_seeds([s["eval"] for s in seeds.values() if "eval" in s], int(cfg.eval.trials),

@@ -264,6 +264,10 @@ class PhaseConfig:
     extends: Optional[str] = None
     exit: Optional[ExitRule] = None
     max_frames: int = 10_000_000
+    # Instead of max_frames: the phase ends once the pipeline's frames (earlier phases' and
+    # its own) reach this, so it gets what an earlier phase ended by its rule left unused
+    # (a comparison's equal budget per run).
+    until_total_frames: Optional[int] = None
 
 
 @dataclass

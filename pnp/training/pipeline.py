@@ -6,7 +6,8 @@ iterations, frames, wall time, how each ended) and one folder per phase,
 ``<index>_<name>/``, a normal run folder (checkpoint, metrics, plots). Re-running the same
 command resumes: finished phases are skipped, the current one resumes bit for bit from
 its checkpoint, and the next starts from the last one's final checkpoint. Raising the
-``max_frames`` of the last finished phase, if its budget ended it, trains it on.
+``max_frames`` (or ``until_total_frames``) of the last finished phase, if its budget ended
+it, trains it on.
 
 What used to be done by hand between runs happens here: the weights, Adam state and
 observation statistics carry over; the curriculum state (rho per world) carries over and
@@ -109,10 +110,33 @@ def _resolved(phases: DictConfig, name: str) -> DictConfig:
     return phase
 
 
-def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig:
+def phase_frames(cfg: DictConfig, index: int, done: list[dict] = ()) -> int:
+    """Phase ``index``'s frame budget: its ``max_frames``, or with ``until_total_frames``
+    what the earlier phases leave of it (their frames from ``done`` where finished, else
+    their budgets)."""
+    phases = pipeline_phases(cfg)
+    phase = phases[index][1]
+    if phase.until_total_frames is None:
+        return int(phase.max_frames)
+    earlier = sum(int(done[i]["frames"]) if i < len(done) else phase_frames(cfg, i, done) for i in range(index))
+    left = int(phase.until_total_frames) - earlier
+    if left <= 0:
+        raise ValueError(f"phase {phases[index][0]!r}: until_total_frames={phase.until_total_frames} leaves nothing "
+                         f"after the earlier phases' {earlier} frames")
+    return left
+
+
+def total_frames(cfg: DictConfig, names: list[str] | None = None) -> int:
+    """The planned frames of the phases ``names`` (all by default), exit rules aside."""
+    phases = pipeline_phases(cfg)
+    return sum(phase_frames(cfg, i) for i, (name, _) in enumerate(phases) if names is None or name in names)
+
+
+def phase_config(cfg: DictConfig, index: int, source: Path | None, done: list[dict] = ()) -> DictConfig:
     """The run configuration of phase ``index``: ``cfg`` with the phase's overrides, its
-    folder, its frame budget as iterations, and a warm start from ``source``."""
+    folder, its frame budget as iterations (``phase_frames``), and a warm start from ``source``."""
     name, phase = pipeline_phases(cfg)[index]
+    frames = phase_frames(cfg, index, done)
     pcfg = copy.deepcopy(cfg)  # keeps the schema: overrides are type-checked
     pcfg.pipeline, pcfg.phases = [], {}
     for key, value in phase.overrides.items():
@@ -125,7 +149,7 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None) -> DictConfig
         with open_dict(node) if mapping and OmegaConf.get_type(node) is dict else contextlib.nullcontext():
             OmegaConf.update(pcfg, key, value, merge=mapping)
     pcfg.out_dir = str(phase_dir(Path(cfg.out_dir), index, name))
-    pcfg.total_iterations = math.ceil(int(phase.max_frames) / int(pcfg.collect.frames_per_batch))
+    pcfg.total_iterations = math.ceil(frames / int(pcfg.collect.frames_per_batch))
     pcfg.resume = False
     if (Path(pcfg.out_dir) / "checkpoint.pt").is_file():
         pcfg.resume = pcfg.out_dir
@@ -197,14 +221,14 @@ def run_pipeline(cfg: DictConfig) -> dict:
         if d["overrides"] != OmegaConf.to_container(phase.overrides):
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
-    budgets = [math.ceil(int(p.max_frames) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
-               for i, (_, p) in enumerate(phases)]
+    budgets = [math.ceil(phase_frames(cfg, i, done) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
+               for i in range(len(phases))]
     _reopen_grown_budget(done, budgets)
     bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
     bar.update(sum(d["iterations"] for d in done))
     for index in range(len(done), len(names)):
         source = Path(done[-1]["checkpoint"]) if done else None
-        pcfg = phase_config(cfg, index, source)
+        pcfg = phase_config(cfg, index, source, done)
         ckpt_path, rows = Path(pcfg.out_dir) / "checkpoint.pt", []
         if pcfg.resume:  # the rows up to its checkpoint: later ones are redone
             ckpt = load_checkpoint(ckpt_path)

@@ -11,7 +11,7 @@ from omegaconf.errors import ConfigKeyError
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.config import ExitRule
-from pnp.training.pipeline import ExitCheck, phase_config, run_pipeline
+from pnp.training.pipeline import ExitCheck, phase_config, phase_frames, run_pipeline, total_frames
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes"))
@@ -92,6 +92,21 @@ def test_exit_rule_ends_a_phase_and_is_recorded(tmp_path):
     rule = "++phases={near: {max_frames: 80, exit: {metric: frames, min: 40, window: 1}}}"  # met at once
     out = run_pipeline(compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'run'}", "pipeline=[near]", rule]))
     assert out["phases"][0]["exit"] == "rule" and out["phases"][0]["iterations"] == 1
+
+
+def test_a_phase_until_a_total_gets_the_frames_an_earlier_rule_left(tmp_path):
+    # near (budget 120) ends by its rule after 1 iteration (40 frames); far runs to 200 frames in all
+    phases = ("++phases={near: {max_frames: 120, exit: {metric: frames, min: 40, window: 1}},"
+              "far: {until_total_frames: 200, overrides: {env.num_worlds: 8, collect.frames_per_batch: 40}}}")
+    cfg = _cfg(tmp_path / "run", phases)
+    assert [phase_frames(cfg, i) for i in (0, 1)] == [120, 80] and total_frames(cfg) == 200  # planned, rules aside
+    out = run_pipeline(cfg)
+    assert [(p["frames"], p["exit"]) for p in out["phases"]] == [(40, "rule"), (160, "budget")]
+    assert phase_frames(cfg, 1, out["phases"]) == 160
+    short = _cfg(tmp_path / "other", phases.replace("until_total_frames: 200", "until_total_frames: 120"))
+    with pytest.raises(ValueError, match=r"phase 'far': until_total_frames=120 leaves nothing after the earlier "
+                                         r"phases' 120 frames"):
+        phase_frames(short, 1)
 
 
 def test_exit_check_weights_by_episodes_and_names_unknown_metrics():

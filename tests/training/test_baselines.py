@@ -269,6 +269,13 @@ def test_thresholds_count_only_the_whole_task():
     # b is not the best: one of its seeds never got there
     assert r["efficiency"]["frames_to_x"] == 2.0 and r["best_baseline"]["frames_to_x"] == "a"
     assert r["execution_time"] == 8.0 / 12.0 and r["best_baseline"]["execution_time"] == "a"
+    # a seed that never got there counts as the budget: b's (20 + 100) / 2 = 60 against a's 30
+    assert r["efficiency_at_least"]["frames_to_x"] is None  # no budget given
+    assert table1.ratios(methods, "ours", ["frames_to_x"], 100)["efficiency_at_least"]["frames_to_x"] == 2.0
+    methods["a"]["seeds"] = seeds(30, None)  # now b's 60 is the smaller: at least 60 / 15
+    assert table1.ratios(methods, "ours", ["frames_to_x"], 100)["efficiency_at_least"]["frames_to_x"] == 4.0
+    methods["ours"]["seeds"] = seeds(10, None)  # ours never got there on a seed: no bound
+    assert table1.ratios(methods, "ours", ["frames_to_x"], 100)["efficiency_at_least"]["frames_to_x"] is None
 
 
 def _table1_cfg(tmp_path, methods, seeds, *phases):

@@ -351,12 +351,13 @@ def run_table1(cfg: DictConfig) -> dict:
             "command": train_command(cfg, method, kinematic_phases(full)), "parameters": method_parameters(full),
         }
     keys = [f"frames_to_{label(m, float(v))}" for m, v in cfg.thresholds.items()]
-    r = ratios(methods, cfg.ours, keys, next(iter(budgets.values()))[1])
+    kin_budget = next(iter(budgets.values()))[1]  # the same for every method (checked above)
+    r = ratios(methods, cfg.ours, keys, kin_budget)
     r_kin = ratios({m: {**v["kinematic"], "seeds": v["seeds"]} for m, v in methods.items()}, cfg.ours, keys)
     # a phase start is marked where every run started it at the same frame (exit rules move them)
     starts = [set(map(tuple, run[3])) for run in done.values()]
     phases = sorted(set.intersection(*starts)) if starts else []
-    pngs = plot_curves(curves, next(iter(budgets.values()))[1], int(cfg.curve_bins), phases, out)
+    pngs = plot_curves(curves, kin_budget, int(cfg.curve_bins), phases, out)
     doc = {"methods": methods, "efficiency_ratio": r["efficiency"].get(keys[0]), "efficiency_ratios": r["efficiency"],
            "efficiency_ratios_at_least": r["efficiency_at_least"],
            "execution_time_ratio": r["execution_time"], "execution_time_ratio_kinematic": r_kin["execution_time"],

@@ -76,8 +76,9 @@ class StageRewards(FixedScales):
             if high is None:
                 raise ValueError("completed_share > 0 needs `high`, the bound of every stage-wise term")
             best = _best_steps(self, high)
-        completed = torch.zeros(self.n_stages).index_add_(0, self._term_stage.cpu(), best) * float(completed_share)
+        completed = torch.zeros(self.n_stages).index_add_(0, self._term_stage, best) * float(completed_share)
         self.register_buffer("_completed", completed, persistent=False)
+        self.register_buffer("_stage_ids", torch.arange(self.n_stages), persistent=False)
         self.stage_rewards_key = unravel_key(stage_rewards_key)
         self.out_keys = [*self.out_keys, self.stage_rewards_key]
 
@@ -88,7 +89,7 @@ class StageRewards(FixedScales):
         own = terms.new_zeros(*stage.shape, self.n_stages).index_add_(-1, self._term_stage, staged)
         fixed = (self._fixed_w.to(terms.dtype) * terms[..., self._fixed_idx]).sum(-1, keepdim=True)
         here = torch.nn.functional.one_hot(stage, self.n_stages).to(terms.dtype)
-        above = (torch.arange(self.n_stages, device=stage.device) < stage.unsqueeze(-1)).to(terms.dtype)
+        above = (self._stage_ids < stage.unsqueeze(-1)).to(terms.dtype)
         return here * (own + fixed) + above * self._completed.to(terms.dtype)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

@@ -110,26 +110,32 @@ def _resolved(phases: DictConfig, name: str) -> DictConfig:
     return phase
 
 
+def _planned_frames(cfg: DictConfig, done: list[dict] = ()) -> list[int]:
+    """Every phase's frame budget in one pass: its ``max_frames``, or with
+    ``until_total_frames`` what the earlier phases leave of it (their frames from ``done``
+    where finished, else their budgets)."""
+    budgets, earlier = [], 0
+    for i, (name, phase) in enumerate(pipeline_phases(cfg)):
+        frames = int(phase.max_frames)
+        if phase.until_total_frames is not None:
+            frames = int(phase.until_total_frames) - earlier
+            if frames <= 0:
+                raise ValueError(f"phase {name!r}: until_total_frames={phase.until_total_frames} leaves nothing "
+                                 f"after the earlier phases' {earlier} frames")
+        budgets.append(frames)
+        earlier += int(done[i]["frames"]) if i < len(done) else frames
+    return budgets
+
+
 def phase_frames(cfg: DictConfig, index: int, done: list[dict] = ()) -> int:
-    """Phase ``index``'s frame budget: its ``max_frames``, or with ``until_total_frames``
-    what the earlier phases leave of it (their frames from ``done`` where finished, else
-    their budgets)."""
-    phases = pipeline_phases(cfg)
-    phase = phases[index][1]
-    if phase.until_total_frames is None:
-        return int(phase.max_frames)
-    earlier = sum(int(done[i]["frames"]) if i < len(done) else phase_frames(cfg, i, done) for i in range(index))
-    left = int(phase.until_total_frames) - earlier
-    if left <= 0:
-        raise ValueError(f"phase {phases[index][0]!r}: until_total_frames={phase.until_total_frames} leaves nothing "
-                         f"after the earlier phases' {earlier} frames")
-    return left
+    """Phase ``index``'s frame budget (:func:`_planned_frames`)."""
+    return _planned_frames(cfg, done)[index]
 
 
 def total_frames(cfg: DictConfig, names: list[str] | None = None) -> int:
     """The planned frames of the phases ``names`` (all by default), exit rules aside."""
-    phases = pipeline_phases(cfg)
-    return sum(phase_frames(cfg, i) for i, (name, _) in enumerate(phases) if names is None or name in names)
+    planned = _planned_frames(cfg)
+    return sum(f for f, (name, _) in zip(planned, pipeline_phases(cfg)) if names is None or name in names)
 
 
 def phase_config(cfg: DictConfig, index: int, source: Path | None, done: list[dict] = ()) -> DictConfig:
@@ -221,8 +227,8 @@ def run_pipeline(cfg: DictConfig) -> dict:
         if d["overrides"] != OmegaConf.to_container(phase.overrides):
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
-    budgets = [math.ceil(phase_frames(cfg, i, done) / int(_phase_value(cfg, i, "collect.frames_per_batch")))
-               for i in range(len(phases))]
+    budgets = [math.ceil(f / int(_phase_value(cfg, i, "collect.frames_per_batch")))
+               for i, f in enumerate(_planned_frames(cfg, done))]
     _reopen_grown_budget(done, budgets)
     bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
     bar.update(sum(d["iterations"] for d in done))

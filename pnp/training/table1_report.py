@@ -48,12 +48,11 @@ def markdown(doc: dict) -> str:
             "| --- |" + " --- |" * len(keys)]
     for method, m in doc["methods"].items():
         out.append(f"| {NAMES.get(method, method)} | " + " | ".join(_frames(m["seeds"], k) for k in keys) + " |")
+    least = doc["efficiency_ratios_at_least"]
     out += ["", f"Efficiency ratio (the best baseline's frames over ours, first threshold): "
                 f"{_num(doc['efficiency_ratio'])}; counting a seed that never got there as the kinematic "
-                f"budget, at least {_num(doc.get('efficiency_ratios_at_least', {}).get(keys[0]))} "
-                f"({keys[0].removeprefix('frames_to_')}) and "
-                f"{_num(doc.get('efficiency_ratios_at_least', {}).get(keys[-1]))} ({keys[-1].removeprefix('frames_to_')})"
-                f"; execution time ratio (ours over the most successful "
+                f"budget, at least " + " and ".join(f"{_num(least[k])} ({k.removeprefix('frames_to_')})" for k in keys)
+            + f"; execution time ratio (ours over the most successful "
                 f"baseline's, MuJoCo): {_num(doc['execution_time_ratio'])}, kinematic: "
                 f"{_num(doc['execution_time_ratio_kinematic'])}."]
     return "\n".join(out) + "\n"

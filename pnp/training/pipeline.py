@@ -230,8 +230,10 @@ def run_pipeline(cfg: DictConfig) -> dict:
     budgets = [math.ceil(f / int(_phase_value(cfg, i, "collect.frames_per_batch")))
                for i, f in enumerate(_planned_frames(cfg, done))]
     _reopen_grown_budget(done, budgets)
-    bar = tqdm(total=sum(budgets), disable=not cfg.progress, desc="pipeline")
-    bar.update(sum(d["iterations"] for d in done))
+    # Finished phases count as run, the others at their budgets; an exit by rule shrinks the total.
+    finished = sum(d["iterations"] for d in done)
+    bar = tqdm(total=finished + sum(budgets[len(done):]), disable=not cfg.progress, desc="pipeline")
+    bar.update(finished)
     for index in range(len(done), len(names)):
         source = Path(done[-1]["checkpoint"]) if done else None
         pcfg = phase_config(cfg, index, source, done)
@@ -259,6 +261,8 @@ def run_pipeline(cfg: DictConfig) -> dict:
             if result["stopped_by_signal"] or (not by_rule and counters["iteration"] < int(pcfg.total_iterations)):
                 bar.close()  # a signal or the wall-time limit: the same command resumes here
                 return {"out_dir": str(out_dir), "phases": done, "finished": False}
+        bar.total -= budgets[index] - int(counters["iteration"])
+        bar.refresh()
         done.append({
             "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),

@@ -109,6 +109,32 @@ def test_a_phase_until_a_total_gets_the_frames_an_earlier_rule_left(tmp_path):
         phase_frames(short, 1)
 
 
+def test_the_progress_bar_counts_a_phase_ended_by_its_rule_as_run(tmp_path, monkeypatch):
+    import pnp.training.pipeline as pipeline
+
+    bars = []
+
+    class Bar:  # records what the pipeline's bar was told
+        def __init__(self, total, **_):
+            self.total, self.n = total, 0
+            bars.append(self)
+
+        def update(self, n=1):
+            self.n += n
+
+        def set_description(self, *_, **__):
+            pass
+
+        refresh = close = set_postfix = set_description
+
+    monkeypatch.setattr(pipeline, "tqdm", Bar)
+    rule = "++phases={near: {max_frames: 120, exit: {metric: frames, min: 40, window: 1}}}"  # 1 of 3 iterations
+    out = run_pipeline(_cfg(tmp_path / "run", rule))
+    assert bars[0].total == bars[0].n == sum(p["iterations"] for p in out["phases"]) == 1 + 3
+    run_pipeline(_cfg(tmp_path / "run", rule))  # finished: the bar starts full at what was run
+    assert bars[1].total == bars[1].n == 4
+
+
 def test_exit_check_weights_by_episodes_and_names_unknown_metrics():
     rule = OmegaConf.structured(ExitRule(metric="success_rate", min=0.5, window=2))
     check = ExitCheck(rule, [{"episodes": 1, "success_rate": 1.0}])

@@ -16,15 +16,14 @@ from tensordict import TensorDict
 from pnp.losses.erskine import CooperativeMAPPOLoss
 from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.terms import REWARD_TABLE, REWARD_TERMS, STAGE_GATES, TERM_STAGE
-from pnp.training.baselines import use_baseline_schedule
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.keys import OBS, STAGE_ONE_HOT
 from pnp.training.pipeline import load_state
-from pnp.training.models import AgentNet, ObsNorm, fold_constant_inputs, make_models
+from pnp.training.models import AgentNet, ObsNorm, fold_constant_inputs
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.sequential import SequentialSchedule
 from pnp.training.stage_ensemble import StageEnsemble, parameter_count
-from pnp.training.tasks import make_env, schedule_args, schedule_of
+from pnp.training.tasks import schedule_args, schedule_of
 from pnp.training.trainer import make_training
 from pnp.transforms.baselines import SequentialSubtask, StageRewards
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
@@ -124,9 +123,7 @@ def _bendikas(*extra, max_frames=100, window=2):
     torch.manual_seed(0)
     cfg = compose_cfg("train", [*TINY, *BENDIKAS, f"baseline.bendikas.max_frames={max_frames}",
                                 f"baseline.bendikas.window={window}", *extra])
-    env = make_env(cfg.env, cfg.curriculum, 0)
-    use_baseline_schedule(env, cfg)
-    models = make_models(cfg.model, cfg.loss, env)
+    env, models, _ = make_training(cfg)  # as a run builds them
     optim = torch.optim.Adam([*models.actor.parameters(), *models.critic.parameters()], lr=1e-2)
     return SequentialSchedule(cfg.baseline.bendikas, schedule_of(env), models.actor_net, models.critic_net, optim), env
 
@@ -221,8 +218,9 @@ def test_bendikas_resumes_bit_for_bit_and_evaluates_its_last_policy(tmp_path):
 def test_parameter_counts():
     counts = {}
     for ps in ("none", "bendikas", "erskine"):
-        cfg = compose_cfg("train", [*TINY, f"model.per_stage={ps}"])
-        models = make_models(cfg.model, cfg.loss, make_env(cfg.env, cfg.curriculum, 0))
+        fixed = [] if ps == "none" else ["curriculum.schedule=fixed"]  # the baselines train on mu_j
+        env, models, _ = make_training(compose_cfg("train", [*TINY, f"model.per_stage={ps}", *fixed]))
+        env.close()
         counts[ps] = parameter_count(models.actor_net, models.critic_net)
     ours = counts["none"]
     assert counts["bendikas"]["actor"] == 7 * ours["actor"] and counts["bendikas"]["inference"] == ours["actor"]

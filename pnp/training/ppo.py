@@ -58,7 +58,7 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     flat = minibatch_source(batch, memory is not None, cfg)
     params = [p for g in optim.param_groups for p in g["params"]]
     floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
-    sums, n = defaultdict(float), 0
+    sums, n, steps, skipped = defaultdict(float), 0, 0, []
     rows = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
     per_minibatch = max(1, int(cfg.collect.minibatch_size) // math.prod(flat.batch_size[1:]))  # rows of T steps
     for _ in range(int(cfg.collect.num_epochs) if rows else 0):
@@ -75,11 +75,27 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
             total = sum(v for k, v in out.items() if k.startswith("loss_"))  # MAPPO's, and any a subclass adds
             optim.zero_grad(set_to_none=True)
             total.backward()
-            sums["grad_norm"] += float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))
+            norm = float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))
+            steps += 1
+            if not math.isfinite(norm):
+                # Clipping by a non-finite norm turns every gradient into NaN: one saturated
+                # log-probability would poison all parameters. The step is skipped instead.
+                skipped.append(_nonfinite_grads(loss))
+                continue
             optim.step()
+            sums["grad_norm"] += norm
             for k in LOGGED:
                 if k in out.keys():
                     sums[k] += float(out[k].detach().float().mean())
             n += 1
+    if steps and n == 0:
+        raise FloatingPointError(f"every one of this iteration's {steps} PPO steps had a non-finite gradient "
+                                 f"(first in {skipped[0][:4]}): the parameters are kept as they were; the run diverges")
     # n == 0 (every frame a roll-in) leaves no sums to divide.
-    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"]}
+    return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"],
+            "train/skipped_steps": len(skipped)}
+
+
+def _nonfinite_grads(loss: torch.nn.Module) -> list[str]:
+    """Names of the parameters whose gradient holds inf or NaN."""
+    return [name for name, p in loss.named_parameters() if p.grad is not None and not bool(torch.isfinite(p.grad).all())]

@@ -3,6 +3,7 @@ checkpoints, bit-for-bit resume, warm starts, roll-ins and desynchronised episod
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -193,3 +194,27 @@ def test_desync_episodes_spreads_the_first_episode_ends():
     assert torch.equal(first_end, 5 - off)
     with pytest.raises(ValueError, match="max_episode_steps"):
         desync_episodes(env.reset(), None)
+
+
+def test_a_step_with_a_non_finite_gradient_is_skipped_and_an_iteration_of_them_is_an_error():
+    cfg, env, models = _tiny_models("env.max_episode_steps=4")
+    batch, _ = collect(env, models.actor, env.reset(), 8)
+    loss = make_loss(cfg.loss, models)
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    param = next(models.actor.parameters())
+    calls = []
+
+    def poison_first(grad):  # a saturated log-probability's gradient, once
+        calls.append(1)
+        return grad * float("nan") if len(calls) == 1 else grad
+
+    hook = param.register_hook(poison_first)
+    out = ppo_update(batch, loss, optim, cfg)
+    assert out["train/skipped_steps"] == 1 and len(calls) > 1 and math.isfinite(out["train/grad_norm"])
+    assert all(torch.isfinite(p).all() for p in loss.parameters())
+    hook.remove()
+    param.register_hook(lambda grad: grad * float("nan"))
+    before = [p.clone() for p in models.actor.parameters()]  # (PopArt rescales the critic's head anyway)
+    with pytest.raises(FloatingPointError, match=r"every one of this iteration's \d+ PPO steps had a non-finite"):
+        ppo_update(batch, loss, optim, cfg)
+    assert all(torch.equal(p, q) for p, q in zip(before, models.actor.parameters()))

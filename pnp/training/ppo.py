@@ -58,7 +58,7 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
     flat = minibatch_source(batch, memory is not None, cfg)
     params = [p for g in optim.param_groups for p in g["params"]]
     floors = [m for m in loss.actor_network.modules() if isinstance(m, GripperFloor) and m.coeff > 0]
-    sums, n, steps, skipped = defaultdict(float), 0, 0, []
+    sums, n, skipped = defaultdict(float), 0, []
     rows = flat.batch_size[0]  # not numel(): a TensorDict of batch [0] reports 1
     per_minibatch = max(1, int(cfg.collect.minibatch_size) // math.prod(flat.batch_size[1:]))  # rows of T steps
     for _ in range(int(cfg.collect.num_epochs) if rows else 0):
@@ -75,21 +75,23 @@ def ppo_update(batch: TensorDictBase, loss: PopArtMAPPOLoss, optim: torch.optim.
             total = sum(v for k, v in out.items() if k.startswith("loss_"))  # MAPPO's, and any a subclass adds
             optim.zero_grad(set_to_none=True)
             total.backward()
-            norm = float(torch.nn.utils.clip_grad_norm_(params, float(cfg.optim.max_grad_norm)))
-            steps += 1
-            if not math.isfinite(norm):
+            grads = [q.grad for q in params if q.grad is not None]
+            norm = torch.nn.utils.get_total_norm(grads)  # as clip_grad_norm_ computes it
+            if not bool(torch.isfinite(norm)):
                 # Clipping by a non-finite norm turns every gradient into NaN: one saturated
-                # log-probability would poison all parameters. The step is skipped instead.
+                # log-probability would poison all parameters. The step is skipped instead,
+                # and the parameters named while their gradients still show where it came from.
                 skipped.append(_nonfinite_grads(loss))
                 continue
+            torch.nn.utils.clip_grads_with_norm_(params, float(cfg.optim.max_grad_norm), norm)
             optim.step()
-            sums["grad_norm"] += norm
+            sums["grad_norm"] += float(norm)
             for k in LOGGED:
                 if k in out.keys():
                     sums[k] += float(out[k].detach().float().mean())
             n += 1
-    if steps and n == 0:
-        raise FloatingPointError(f"every one of this iteration's {steps} PPO steps had a non-finite gradient "
+    if skipped and n == 0:
+        raise FloatingPointError(f"every one of this iteration's {len(skipped)} PPO steps had a non-finite gradient "
                                  f"(first in {skipped[0][:4]}): the parameters are kept as they were; the run diverges")
     # n == 0 (every frame a roll-in) leaves no sums to divide.
     return {**{f"train/{k}": v / n for k, v in sums.items()}, "train/lr": optim.param_groups[0]["lr"],

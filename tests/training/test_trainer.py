@@ -215,6 +215,8 @@ def test_a_step_with_a_non_finite_gradient_is_skipped_and_an_iteration_of_them_i
     hook.remove()
     param.register_hook(lambda grad: grad * float("nan"))
     before = [p.clone() for p in models.actor.parameters()]  # (PopArt rescales the critic's head anyway)
-    with pytest.raises(FloatingPointError, match=r"every one of this iteration's \d+ PPO steps had a non-finite"):
+    with pytest.raises(FloatingPointError, match=r"every one of this iteration's \d+ PPO steps had a non-finite") as err:
         ppo_update(batch, loss, optim, cfg)
+    named = str(err.value).split("(first in [")[1].split("]")[0].split(", ")
+    assert len(named) == 1 and named[0].endswith("0.weight'")  # the poisoned one alone, named before clipping spreads NaN
     assert all(torch.equal(p, q) for p, q in zip(before, models.actor.parameters()))

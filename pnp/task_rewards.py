@@ -51,6 +51,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "collision": _collisions(s, frame or BaseFrame(s)),
         "joint_limits": joint_limit_excess(s.arm_q),
         "fall": g.fell.float(),
+        "gripper_toggle": (((p > 0.5) != (last_action[..., 7] > 0.5)) & ~g.grasped).float(),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -69,6 +69,10 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     RewardTerm("collision", None, -1.0, 0.0, 1.0),
     RewardTerm("joint_limits", None, -1.0, 0.0, float("inf")),
     RewardTerm("fall", None, -100.0, 0.0, 1.0),
+    # Not in the paper, off unless curriculum.fixed_weights sets it: 1 when the gripper command
+    # flips while nothing is held. Closing and opening next to a handle is how the MuJoCo
+    # policies knocked boxes over (docs/pipeline_single/failures.md).
+    RewardTerm("gripper_toggle", None, 0.0, 0.0, 1.0),
 )
 
 REWARD_TERMS: tuple[str, ...] = tuple(t.name for t in REWARD_TABLE)

@@ -132,6 +132,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "collision": collision,
         "joint_limits": torch.clamp((s.arm_q - mid).abs() - 0.95 * half, min=0.0).sum(-1),
         "fall": g.fell.float(),
+        "gripper_toggle": ((action[..., 7] > 0.5).ne(last_action[..., 7] > 0.5) & ~g.grasped).float(),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -12,7 +12,7 @@ import pnp.task as T
 from pnp.envs.pnp_env import BLOCKS, PnPEnv
 from pnp.scripted import ScriptedPnP
 from pnp.task import ACTION_HIGH, ACTION_LOW, PnPState
-from pnp.terms import CONDITIONS
+from pnp.terms import CONDITIONS, REWARD_TERMS
 from tests.pnp import _task_reference as REF
 
 ATOL, RTOL = 1e-5, 1e-5  # float32; rewards reach ~100
@@ -144,3 +144,26 @@ def test_check_action_fast_path_keeps_errors_and_clipping():
     a[2, 0, 3], a[3, 0, 0] = float("nan"), -float("inf")
     with pytest.raises(ValueError, match=r"^\('agents', 'action'\) has NaN or Inf in worlds \[2, 3\]$"):
         env._check_action(a)
+
+
+def test_gripper_toggle_counts_flips_of_the_command_while_nothing_is_held():
+    env = PnPEnv(num_worlds=2, num_robots=1, backend="kinematic", seed=0, nthread=1)
+    try:
+        td = env.reset()
+        col = REWARD_TERMS.index("gripper_toggle")
+        seen = []
+        for grip in (1.0, 0.0, 0.0, 1.0):  # from the reset's open command: flip, flip, hold, flip
+            a = env._last_action.clone()
+            a[..., 7] = grip
+            td["agents", "action"] = a
+            td = env.step(td)
+            seen.append(td["next", "agents", "reward_terms"][:, 0, col].tolist())
+            td = env.step_mdp(td)
+        assert seen == [[1.0, 1.0], [1.0, 1.0], [0.0, 0.0], [1.0, 1.0]]
+        action, last = env._last_action, env._last_action.clone()
+        last[..., 7] = 0.0
+        s = env.backend.state(env._goal, env._init_goal_dist, action[..., 7])
+        held = dataclasses.replace(T.geometry(s), grasped=torch.ones(2, 1, dtype=torch.bool))
+        assert T.reward_terms(s, held, action, last, T.stage_conditions(s, held))[..., col].eq(0).all()
+    finally:
+        env.close()

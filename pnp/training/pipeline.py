@@ -127,6 +127,12 @@ def _planned_frames(cfg: DictConfig, done: list[dict] = ()) -> list[int]:
     return budgets
 
 
+def _budgets(cfg: DictConfig, done: list[dict]) -> list[int]:
+    """Every phase's budget in iterations (:func:`_planned_frames` over its batch)."""
+    return [math.ceil(f / int(_phase_value(cfg, i, "collect.frames_per_batch")))
+            for i, f in enumerate(_planned_frames(cfg, done))]
+
+
 def phase_frames(cfg: DictConfig, index: int, done: list[dict] = ()) -> int:
     """Phase ``index``'s frame budget (:func:`_planned_frames`)."""
     return _planned_frames(cfg, done)[index]
@@ -227,10 +233,10 @@ def run_pipeline(cfg: DictConfig) -> dict:
         if d["overrides"] != OmegaConf.to_container(phase.overrides):
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
-    budgets = [math.ceil(f / int(_phase_value(cfg, i, "collect.frames_per_batch")))
-               for i, f in enumerate(_planned_frames(cfg, done))]
+    budgets = _budgets(cfg, done)
     _reopen_grown_budget(done, budgets)
-    # Finished phases count as run, the others at their budgets; an exit by rule shrinks the total.
+    # Finished phases count as run, the others at their budgets: an exit by rule shrinks the
+    # total, or moves the frames to a later phase that trains until a total.
     finished = sum(d["iterations"] for d in done)
     bar = tqdm(total=finished + sum(budgets[len(done):]), disable=not cfg.progress, desc="pipeline")
     bar.update(finished)
@@ -261,8 +267,6 @@ def run_pipeline(cfg: DictConfig) -> dict:
             if result["stopped_by_signal"] or (not by_rule and counters["iteration"] < int(pcfg.total_iterations)):
                 bar.close()  # a signal or the wall-time limit: the same command resumes here
                 return {"out_dir": str(out_dir), "phases": done, "finished": False}
-        bar.total -= budgets[index] - int(counters["iteration"])
-        bar.refresh()
         done.append({
             "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
@@ -270,5 +274,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
         })
         (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
         plot_pipeline(out_dir, done)
+        bar.total = sum(d["iterations"] for d in done) + sum(_budgets(cfg, done)[len(done):])
+        bar.refresh()
     bar.close()
     return {"out_dir": str(out_dir), "phases": done, "finished": True}

@@ -121,6 +121,7 @@ def test_the_progress_bar_counts_a_phase_ended_by_its_rule_as_run(tmp_path, monk
 
         def update(self, n=1):
             self.n += n
+            assert self.n <= self.total, f"the bar ran past its total: {self.n} > {self.total}"
 
         def set_description(self, *_, **__):
             pass
@@ -133,6 +134,11 @@ def test_the_progress_bar_counts_a_phase_ended_by_its_rule_as_run(tmp_path, monk
     assert bars[0].total == bars[0].n == sum(p["iterations"] for p in out["phases"]) == 1 + 3
     run_pipeline(_cfg(tmp_path / "run", rule))  # finished: the bar starts full at what was run
     assert bars[1].total == bars[1].n == 4
+    # A phase until a total takes over the frames the rule left: 1 + 4 iterations, not 1 + 2,
+    # and the total says so before that phase runs
+    until = rule.replace("}}}", "}}, far: {until_total_frames: 200, overrides: {env.num_worlds: 8}}}")
+    out = run_pipeline(_cfg(tmp_path / "until", until))
+    assert bars[2].total == bars[2].n == sum(p["iterations"] for p in out["phases"]) == 1 + 4
 
 
 def test_exit_check_weights_by_episodes_and_names_unknown_metrics():

@@ -18,6 +18,7 @@ from typing import Callable
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 from tqdm import tqdm
 
@@ -126,6 +127,19 @@ class StopOnSignal:
         self._old = {}
 
 
+def conform_to_spec(carried: TensorDictBase, spec) -> list:
+    """Entries of ``carried`` whose shape differs from ``spec``'s set to the spec's zeros, in
+    place; returns their keys. A checkpoint's carried step holds every observation entry,
+    and one that grew since (a reward term added) could not be stacked with new steps."""
+    zero, stale = spec.zero(), []
+    have = set(carried.keys(True, True))
+    for key in zero.keys(True, True):
+        if key in have and carried[key].shape != zero[key].shape:
+            carried[key] = zero[key]
+            stale.append(key)
+    return stale
+
+
 def truncate_metrics(path: Path, iteration: int) -> None:
     """Drop lines logged after the checkpoint (a run killed between checkpoints)."""
     if path.is_file():
@@ -184,6 +198,9 @@ class Trainer:
         self.env.transform.load_state_dict(ckpt["curriculum"])
         self.env.base_env.set_state(ckpt["env"])
         self.carried = ckpt["carried"]
+        stale = conform_to_spec(self.carried, self.env.observation_spec)
+        if stale:
+            print(f"resume: the checkpoint's last step has {stale} in another shape (an entry added since): zeros")
         self.counters = dict(ckpt["counters"])
         set_rng_state(ckpt["rng"])
         if self.roll_in is not None and "roll_in" in ckpt:

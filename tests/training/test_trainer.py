@@ -7,6 +7,8 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data import Composite, Unbounded
 
 from pnp.training.checkpoint import adapt_curriculum, load_checkpoint, load_module
 from pnp.training.collect import MeanRollIn, collect, desync_episodes
@@ -14,7 +16,7 @@ from pnp.training.keys import ACTION, ROLL_IN
 from pnp.training.models import AgentNet, dist_from_params, make_models
 from pnp.training.ppo import ppo_update
 from pnp.training.tasks import make_env
-from pnp.training.trainer import make_loss, resume_config
+from pnp.training.trainer import conform_to_spec, make_loss, resume_config
 from tests.training._tiny import TINY, compose_cfg, tiny_train
 
 
@@ -220,3 +222,13 @@ def test_a_step_with_a_non_finite_gradient_is_skipped_and_an_iteration_of_them_i
     named = str(err.value).split("(first in [")[1].split("]")[0].split(", ")
     assert len(named) == 1 and named[0].endswith("0.weight'")  # the poisoned one alone, named before clipping spreads NaN
     assert all(torch.equal(p, q) for p, q in zip(before, models.actor.parameters()))
+
+
+def test_a_resumed_carried_step_takes_the_shape_of_an_observation_entry_that_grew():
+    agents = Composite(reward_terms=Unbounded(shape=(4, 1, 17)), observation=Unbounded(shape=(4, 1, 3)), shape=(4, 1))
+    spec = Composite(agents=agents, shape=(4,))
+    carried = TensorDict({"agents": TensorDict({"reward_terms": torch.ones(4, 1, 16), "observation": torch.ones(4, 1, 3)},
+                                               [4, 1])}, [4])
+    assert conform_to_spec(carried, spec) == [("agents", "reward_terms")]
+    assert carried["agents", "reward_terms"].shape == (4, 1, 17) and not carried["agents", "reward_terms"].any()
+    assert carried["agents", "observation"].eq(1).all()  # the entries that still fit are kept

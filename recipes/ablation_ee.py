@@ -6,7 +6,8 @@
 Every run trains ``recipes/train.py`` on ``env.task=ee_tracking`` with the same budget
 (``iterations`` x ``collect.frames_per_batch`` frames) into ``runs_dir/<method>_s<seed>``;
 an existing run resumes (or is skipped when complete; a larger ``iterations`` trains it on),
-so the ablation survives restarts. A method is a schedule (``schedules``) or a named
+so the ablation survives restarts. Each finished run's result and curve rows are also kept
+in ``records_dir`` (committed), so finished runs survive the loss of ``runs_dir`` too. A method is a schedule (``schedules``) or a named
 variant (``variants``: a schedule plus overrides, e.g. ``curriculum.completed_floor``).
 Then each policy runs ``eval_trials`` deterministic episodes. Writes ``out`` (JSON: per
 method and seed the first iteration at which most episodes end in S4, the final success
@@ -37,13 +38,16 @@ from pnp.training.config import register  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
+from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
 from pnp.training.tasks import schedule_of  # noqa: E402
 from pnp.training.trainer import train  # noqa: E402
 
 register()
 
 CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
-FINAL = "stage_share/S4"
+# The metric columns a record keeps for the curves (the thresholds are computed from every column first).
+ROW_KEYS = ("iteration", "frames", "wall_s", "episodes", "success_rate", "completion_time_s", "mean_end_stage")
+ROW_PREFIXES = ("stage_share/", "rho/")
 CURVES = {"success_rate": "success rate", "completion_time_s": "completion time (s)",
           "mean_end_stage": "mean end-of-episode stage"}
 
@@ -143,7 +147,12 @@ def plot_curves(runs: dict[str, dict[int, list[dict]]], window: int, out_dir: Pa
 
 
 def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
-    """rho_j over its largest value, every stage term vs iteration, one panel per method (its first seed)."""
+    """rho_j over its largest value, every stage term vs iteration, one panel per method with a
+    rho state (its first seed; Liu et al.'s coefficients follow each step's stage, no state)."""
+    def has_rho(by_seed):
+        return any(k.startswith("rho/") for r in next(iter(by_seed.values())) for k in r)
+
+    runs = {m: s for m, s in runs.items() if has_rho(s)} or runs
     fig, axes = plt.subplots(1, len(runs), figsize=(3.6 * len(runs), 3.2), sharey=True, squeeze=False)
     for ax, (method, by_seed) in zip(axes[0], runs.items()):
         rows = next(iter(by_seed.values()))
@@ -162,6 +171,42 @@ def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
     return path
 
 
+def run_seed(cfg: DictConfig, method: str, overrides: list[str], seed: int) -> tuple[dict, list[dict], str]:
+    """One run's result, its curve rows and its backend: from its record in ``records_dir``
+    while that holds the run's settings and budget, else trained (or resumed) and evaluated."""
+    tcfg = train_config(cfg, method, overrides, seed)
+    path = Path(cfg.records_dir) / f"{method}_s{seed}.json"
+    settings = {"eval_trials": int(cfg.eval_trials), "eval_seed": int(cfg.eval_seed)}
+    kept = load_record(path, tcfg)
+    if (kept is None or kept["eval_settings"] != settings
+            or kept["result"]["budget"]["iterations"] != int(cfg.iterations)):
+        kept = finish_run(tcfg, settings, f"{method} seed {seed}")
+        save_record(path, tcfg, kept)
+    return kept["result"], kept["rows"], str(tcfg.env.backend)
+
+
+def finish_run(tcfg: DictConfig, settings: dict, label: str) -> dict:
+    """Train (or resume) the run of ``tcfg`` and evaluate it: the payload of its record."""
+    if train(tcfg)["stopped_by_signal"]:
+        # The run checkpointed; stop here too (a caller sent SIGTERM/SIGINT), or this
+        # process would go on writing into the next runs' folders.
+        raise SystemExit(f"stopped by a signal during {label}; rerun to resume")
+    run = Path(tcfg.out_dir)
+    rows = load_metrics(run / "metrics.jsonl")
+    last = rows[-1] if rows else {}
+    result = {
+        "iterations_to_S4_majority": first_majority_in_final(rows),
+        "iterations_to_majority_at_least": {f"S{k}": first_majority_at_least(rows, k) for k in range(1, 5)},
+        "final_mean_end_stage_train": final_mean(rows, "mean_end_stage"),
+        **evaluate_policy(run, settings["eval_trials"], settings["eval_seed"]),
+        "budget": {"iterations": last.get("iteration"), "frames": last.get("frames"),
+                   "train_wall_s": last.get("wall_s")},
+        "run": str(run),
+    }
+    return {"result": result, "rows": compact(rows, ROW_KEYS, ROW_PREFIXES, digits=4),
+            "eval_settings": settings, "finished": provenance()}
+
+
 def run_ablation(cfg: DictConfig) -> dict:
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -170,29 +215,13 @@ def run_ablation(cfg: DictConfig) -> dict:
     for method, overrides in by_name.items():
         results[method], curves[method] = {}, {}
         for seed in cfg.seeds:
-            tcfg = train_config(cfg, method, overrides, int(seed))
-            if train(tcfg)["stopped_by_signal"]:
-                # The run checkpointed; stop here too (a caller sent SIGTERM/SIGINT), or this
-                # process would go on writing into the next runs' folders.
-                raise SystemExit(f"stopped by a signal during {method} seed {seed}; rerun to resume")
-            backend = str(tcfg.env.backend)
-            run = Path(tcfg.out_dir)
-            rows = load_metrics(run / "metrics.jsonl")
-            curves[method][int(seed)] = rows
-            last = rows[-1] if rows else {}
-            results[method][f"seed_{seed}"] = {
-                "iterations_to_S4_majority": first_majority_in_final(rows),
-                "iterations_to_majority_at_least": {f"S{k}": first_majority_at_least(rows, k) for k in range(1, 5)},
-                "final_mean_end_stage_train": final_mean(rows, "mean_end_stage"),
-                **evaluate_policy(run, int(cfg.eval_trials), int(cfg.eval_seed)),
-                "budget": {"iterations": last.get("iteration"), "frames": last.get("frames"),
-                           "train_wall_s": last.get("wall_s")},
-                "run": str(run),
-            }
+            result, rows, backend = run_seed(cfg, method, overrides, int(seed))
+            results[method][f"seed_{seed}"], curves[method][int(seed)] = result, rows
     pngs = plot_curves(curves, int(cfg.window), out.parent) + [plot_rho(curves, out.parent)]
     summary = {m: _summary(r) for m, r in results.items()}
+    train_wall = sum(r["budget"]["train_wall_s"] or 0.0 for by_seed in results.values() for r in by_seed.values())
     doc = {"task": "ee_tracking (4 points)", "backend": backend, "methods": by_name, "results": results, "summary": summary,
-           "plots": [str(p) for p in pngs], "wall_s": time.monotonic() - t0, **prov}
+           "plots": [str(p) for p in pngs], "train_wall_s_total": train_wall, "wall_s": time.monotonic() - t0, **prov}
     out.write_text(json.dumps(doc, indent=2) + "\n")
     return doc
 

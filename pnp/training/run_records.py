@@ -21,8 +21,14 @@ ROW_KEYS = ("iteration", "frames", "wall_s", "phase", "episodes", "end_stage", "
             "subtask_exit")
 
 
-def compact(rows: list[dict]) -> list[dict]:
-    return [{k: r[k] for k in ROW_KEYS if k in r} for r in rows]
+def compact(rows: list[dict], keys: tuple[str, ...] = ROW_KEYS, prefixes: tuple[str, ...] = (),
+            digits: int | None = None) -> list[dict]:
+    """Each row's ``keys`` and keys starting with one of ``prefixes``; floats rounded to
+    ``digits`` significant digits when given (curves only: a record stays small)."""
+    def value(v):
+        return float(f"{v:.{digits}g}") if digits is not None and isinstance(v, float) else v
+
+    return [{k: value(v) for k, v in r.items() if k in keys or k.startswith(prefixes)} for r in rows]
 
 
 def load_record(path: Path, cfg: DictConfig) -> dict | None:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from pnp.training.checkpoint import load_checkpoint  # noqa: E402
 def test_ablation_runs_resumes_and_reports(tmp_path):
     overrides = [
         "schedules=[dynamic,liu_min]", "seeds=[0]", "iterations=2", "eval_trials=3", "window=1",
-        f"runs_dir={tmp_path / 'runs'}", f"out={tmp_path / 'ablation.json'}",
+        f"runs_dir={tmp_path / 'runs'}", f"records_dir={tmp_path / 'records'}", f"out={tmp_path / 'ablation.json'}",
     ]
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
         cfg = compose("ablation_ee", overrides=overrides)
@@ -41,9 +42,13 @@ def test_ablation_runs_resumes_and_reports(tmp_path):
     for key in [*ablation_ee.CURVES, "rho"]:
         assert (tmp_path / f"ablation_ee_{key}.png").stat().st_size > 0
     assert doc["commit"] and doc["command"]
-    # A rerun finds the finished runs and only re-evaluates them.
+    # A rerun takes the finished runs from their records, even with their run folders gone.
+    shutil.rmtree(tmp_path / "runs" / "liu_min_s0")
     again = ablation_ee.run_ablation(cfg)
-    assert again["results"]["liu_min"]["seed_0"]["budget"] == saved["results"]["liu_min"]["seed_0"]["budget"]
+    assert again["results"]["liu_min"] == saved["results"]["liu_min"]
+    assert not (tmp_path / "runs" / "liu_min_s0").exists()
+    rows = json.loads((tmp_path / "records" / "dynamic_s0.json").read_text())["record"]["rows"]
+    assert [r["iteration"] for r in rows] == [1, 2] and any(k.startswith("rho/") for k in rows[0])
     # A larger budget trains the finished runs on.
     cfg.iterations = 3
     longer = ablation_ee.run_ablation(cfg)
@@ -72,7 +77,8 @@ def test_a_signal_stops_the_whole_ablation(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ablation_ee, "train", fake_train)
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
-        cfg = compose("ablation_ee", overrides=[f"runs_dir={tmp_path}", f"out={tmp_path / 'a.json'}"])
+        cfg = compose("ablation_ee", overrides=[f"runs_dir={tmp_path}", f"records_dir={tmp_path / 'rec'}",
+                                                f"out={tmp_path / 'a.json'}"])
     with pytest.raises(SystemExit, match="stopped by a signal during dynamic seed 0"):
         ablation_ee.run_ablation(cfg)
     assert calls == ["dynamic"] and not (tmp_path / "a.json").exists()

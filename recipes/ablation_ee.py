@@ -7,8 +7,9 @@ Every run trains ``recipes/train.py`` on ``env.task=ee_tracking`` with the same 
 (``iterations`` x ``collect.frames_per_batch`` frames) into ``runs_dir/<method>_s<seed>``;
 an existing run resumes (or is skipped when complete; a larger ``iterations`` trains it on),
 so the ablation survives restarts. Each finished run's result and curve rows are also kept
-in ``records_dir`` (committed), so finished runs survive the loss of ``runs_dir`` too. A method is a schedule (``schedules``) or a named
-variant (``variants``: a schedule plus overrides, e.g. ``curriculum.completed_floor``).
+in ``records_dir`` (committed), so finished runs survive the loss of ``runs_dir`` too. A
+method is a schedule (``schedules``) or a named variant (``variants``: a schedule plus
+overrides, e.g. ``curriculum.completed_floor``).
 Then each policy runs ``eval_trials`` deterministic episodes. Writes ``out`` (JSON: per
 method and seed the first iteration at which most episodes end in S4, the final success
 rate, the mean completion time and the budget used) and, beside it, PNGs of success rate,

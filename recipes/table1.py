@@ -236,7 +236,7 @@ def plot_curves(curves: dict[str, dict[int, list[dict]]], budget: int, bins: int
                 mean, lo, hi = np.nanmean(ys, 0), np.nanmin(ys, 0), np.nanmax(ys, 0)
             (line,) = ax.plot(x, mean, label=f"{method} ({len(by_seed)} seeds)")
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
-        for start, name in phases:
+        for start, name in [p for p in phases if p[0] > 0]:  # a phase from frame 0 needs no mark
             ax.axvline(start / 1e6, color="k", lw=0.8, alpha=0.4)
             ax.text(start / 1e6, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", rotation=90)
         top = LAST_SUBTASK + 0.2 if key == "end_stage" else 1.0

@@ -148,8 +148,9 @@ def plot_curves(runs: dict[str, dict[int, list[dict]]], window: int, out_dir: Pa
 
 
 def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
-    """rho_j over its largest value, every stage term vs iteration, one panel per method with a
-    rho state (its first seed; Liu et al.'s coefficients follow each step's stage, no state)."""
+    """rho_j of every stage term vs iteration on a log scale (mu_j and the K-divided values
+    apart by decades), one panel per method with a rho state (its first seed; Liu et al.'s
+    coefficients follow each step's stage, no state)."""
     def has_rho(by_seed):
         return any(k.startswith("rho/") for r in next(iter(by_seed.values())) for k in r)
 
@@ -159,11 +160,11 @@ def plot_rho(runs: dict[str, dict[int, list[dict]]], out_dir: Path) -> Path:
         rows = next(iter(by_seed.values()))
         for key in sorted({k for r in rows for k in r if k.startswith("rho/")}):
             values = np.array([r.get(key, math.nan) for r in rows])
-            scale = np.nanmax(np.abs(values)) or 1.0  # a term whose rho stays 0 plots at 0
-            ax.plot([r["iteration"] for r in rows], values / scale, label=key[4:])
+            ax.plot([r["iteration"] for r in rows], values, label=key[4:])
+        ax.set_yscale("symlog", linthresh=1e-2)  # linear near 0: a rho of 0 still plots
         ax.set(title=f"{method} (seed {next(iter(by_seed))})", xlabel="iteration")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("rho_j / max_t rho_j")
+    axes[0][0].set_ylabel("rho_j")
     axes[0][-1].legend(fontsize=7)
     fig.tight_layout()
     path = out_dir / "ablation_ee_rho.png"

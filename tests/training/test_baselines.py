@@ -320,7 +320,7 @@ def test_table1_recipe_trains_evaluates_and_resumes(tmp_path):
     for png in ("table1_end_stage.png", "table1_success_rate.png"):
         assert (tmp_path / png).stat().st_size > 0
     md = (tmp_path / "table1.md").read_text()
-    assert "| Bendikas et al. | 91.2 | 13.25 ± 0.41 |" in md and "stage_5_5 | success_0_9" in md
+    assert "| Bendikas et al. | 91.2 | 13.25 ± 0.41 |" in md and "success_0_9 | stage_5_5" in md
     # a rerun trains nothing and reuses the evaluations, from the records even without the run folders
     again = table1.run_table1(cfg)
     assert again["methods"]["dynamic"]["seeds"] == doc["methods"]["dynamic"]["seeds"]

@@ -133,6 +133,12 @@ def _budgets(cfg: DictConfig, done: list[dict]) -> list[int]:
             for i, f in enumerate(_planned_frames(cfg, done))]
 
 
+def _bar_total(cfg: DictConfig, done: list[dict]) -> int:
+    """Iterations of the whole pipeline: finished phases as run, the others at their budgets
+    (an exit by rule shrinks it, or moves frames to a later phase that trains until a total)."""
+    return sum(d["iterations"] for d in done) + sum(_budgets(cfg, done)[len(done):])
+
+
 def phase_frames(cfg: DictConfig, index: int, done: list[dict] = ()) -> int:
     """Phase ``index``'s frame budget (:func:`_planned_frames`)."""
     return _planned_frames(cfg, done)[index]
@@ -233,13 +239,9 @@ def run_pipeline(cfg: DictConfig) -> dict:
         if d["overrides"] != OmegaConf.to_container(phase.overrides):
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
-    budgets = _budgets(cfg, done)
-    _reopen_grown_budget(done, budgets)
-    # Finished phases count as run, the others at their budgets: an exit by rule shrinks the
-    # total, or moves the frames to a later phase that trains until a total.
-    finished = sum(d["iterations"] for d in done)
-    bar = tqdm(total=finished + sum(budgets[len(done):]), disable=not cfg.progress, desc="pipeline")
-    bar.update(finished)
+    _reopen_grown_budget(done, _budgets(cfg, done))
+    bar = tqdm(total=_bar_total(cfg, done), disable=not cfg.progress, desc="pipeline")
+    bar.update(sum(d["iterations"] for d in done))
     for index in range(len(done), len(names)):
         source = Path(done[-1]["checkpoint"]) if done else None
         pcfg = phase_config(cfg, index, source, done)
@@ -274,7 +276,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
         })
         (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
         plot_pipeline(out_dir, done)
-        bar.total = sum(d["iterations"] for d in done) + sum(_budgets(cfg, done)[len(done):])
+        bar.total = _bar_total(cfg, done)
         bar.refresh()
     bar.close()
     return {"out_dir": str(out_dir), "phases": done, "finished": True}

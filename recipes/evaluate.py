@@ -40,7 +40,8 @@ def table_md(result: dict, method: str) -> str:
         f"| *{group}* | | |\n| {method} | {100 * result['success_rate']:.1f} | {time_s} |\n\n"
         f"{result['trials']} trials on the {result['backend']} backend, seed {result['seed']}, starts "
         f"{result['start_range_m'][0]}-{result['start_range_m'][1]} m from the goal; failures: {causes}.\n"
-        f"Checkpoint `{result['checkpoint']}` (iteration {result['checkpoint_iteration']}).\n"
+        f"Checkpoint `{result['checkpoint']}` (iteration {result['checkpoint_iteration']})"
+        + (f"; legs: `{result['low_level_checkpoint']}`" if result.get("low_level") == "learned" else "") + ".\n"
     )
 
 
@@ -85,6 +86,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "training_launches": pol.ckpt.get("launches", []),
         "folded_inputs": pol.folded, "sampled_actions": list(sample),
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
+        "low_level": env.low_level,
+        "low_level_checkpoint": str(resolve_checkpoint(env.low_level_checkpoint, cfg.runs_root)) if env.low_level == "learned" else None,
         "wall_s": time.monotonic() - t0, **provenance(),
     }
     if selection is not None:

@@ -53,13 +53,22 @@ def test_a_locomotion_checkpoint_drives_the_pnp_legs(locomotion_run):
     env.close()
 
 
-def test_a_trained_high_level_is_evaluated_on_legs(locomotion_run, pnp_run):
-    """What recipes/evaluate.py does with env.low_level=learned."""
+def test_a_trained_high_level_is_evaluated_on_legs(locomotion_run, pnp_run, tmp_path):
+    """recipes/evaluate.py with env.low_level=learned: trials on the legs, and the result names them."""
     pol = load_policy(pnp_run / "checkpoint.pt", 2, 0, backend="mujoco", nthread=1, max_episode_steps=4, low_level="learned",
                       low_level_checkpoint=str(locomotion_run))
     assert isinstance(pol.env.base_env.backend, LeggedMujocoBackend)
     records = run_trials(pol.env, pol.actor, 2)
     assert len(records) == 2 and all(r["cause"] == "timeout" for r in records)
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import evaluate as evaluate_recipe
+
+    result = evaluate_recipe.evaluate(compose_cfg("evaluate", [
+        f"checkpoint={pnp_run}", "trials=2", "env.num_worlds=2", "env.nthread=1", "env.max_episode_steps=4",
+        "env.backend=mujoco", "env.low_level=learned", f"env.low_level_checkpoint={locomotion_run}",
+        f"out={tmp_path / 'eval.json'}", "progress=false"]))
+    assert result["low_level"] == "learned" and result["low_level_checkpoint"] == str(locomotion_run / "checkpoint.pt")
+    assert f"legs: `{locomotion_run / 'checkpoint.pt'}`" in (tmp_path / "eval.md").read_text()
 
 
 def test_wrong_low_level_settings_are_refused(locomotion_run, pnp_run):

@@ -14,6 +14,7 @@ from pnp.terms import CONDITIONS
 from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
+import box_contacts  # noqa: E402
 import grasp_losses  # noqa: E402
 import knock_overs  # noqa: E402
 import profile_iteration  # noqa: E402
@@ -91,3 +92,19 @@ def test_profile_iteration_runs_the_per_stage_baselines(tmp_path, method):
                                   "collect.minibatch_size=8", "model.actor_cells=[16]", "model.critic_cells=[16]",
                                   "iterations=1", f"out={tmp_path / 'p.json'}"])
     assert out["frames_per_iteration"] == 16 and out["ppo_update_s"] > 0
+
+
+def test_box_contacts_names_robot_parts_and_writes_its_summary(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    out = box_contacts.main([f"checkpoint={tmp_path / 'run'}/checkpoint.pt", f"out={tmp_path / 'c.json'}",
+                             "trials=3", "env.num_worlds=3", "env.max_episode_steps=5", "env.nthread=1"])
+    assert json.loads((tmp_path / "c.json").read_text()) == json.loads(json.dumps(out))
+    assert out["trials"] == 3 and out["env"]["backend"] == "mujoco" and 0 <= out["tilted_unheld_trials"] <= 3
+    parts = {"finger", "palm", "arm", "leg", "trunk"}
+    assert set(out["parts_touching_unheld"]) <= parts and set(out["parts_before_onset"]) <= parts
+    from pnp.training.rollout import load_policy
+    backend = load_policy(f"{tmp_path / 'run'}/checkpoint.pt", 1, 0, backend="mujoco", nthread=1).env.base_env.backend
+    model = backend.model
+    named = {box_contacts.part_of(model, g) for g in range(model.ngeom)}
+    assert {"finger", "palm", "arm"} <= named and None in named  # the floor, goal and box are no robot part
+    assert all(box_contacts.part_of(model, int(g)) is None for g in backend.idx.box_geoms)

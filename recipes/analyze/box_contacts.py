@@ -15,11 +15,9 @@ legs against it 2-4x as often as the hand-run chain's).
 from __future__ import annotations
 
 import collections
-import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -27,8 +25,9 @@ import torch
 from omegaconf import OmegaConf
 
 from pnp.physics import FULL
-from pnp.training.provenance import provenance
 from pnp.training.rollout import GRABBED, box_up_z, load_policy, run_trials, summarise
+
+from analysis_cli import save, settings
 
 DEFAULTS = {"checkpoint": None, "out": "runs/box_contacts.json", "trials": 100, "seed": 777, "tilt_deg": 30.0,
             "window": 6, "env": {"num_worlds": 100, "backend": "mujoco"}}
@@ -115,14 +114,10 @@ def box_contacts(checkpoint: str, trials: int, seed: int, tilt_deg: float, windo
 
 
 def main(argv: list[str]) -> dict:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    if cfg.checkpoint is None:
-        raise SystemExit(__doc__)
+    cfg = settings(argv, DEFAULTS, __doc__)
     out = box_contacts(cfg.checkpoint, int(cfg.trials), int(cfg.seed), float(cfg.tilt_deg), int(cfg.window),
                        **OmegaConf.to_container(cfg.env))
-    out.update(provenance())
-    Path(cfg.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(cfg.out).write_text(json.dumps(out, indent=1) + "\n")
+    save(out, cfg.out)
     print({k: out[k] for k in ("success_rate", "tilted_unheld_trials", "parts_before_onset", "parts_touching_unheld")})
     return out
 

@@ -10,18 +10,17 @@ robot held its handle at once or the box was lifted, and the median EE step whil
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
-from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.terms import CONDITIONS
-from pnp.training.provenance import provenance
 from pnp.training.rollout import load_policy
+
+from analysis_cli import save, settings
 
 GRABBED, LIFTED = CONDITIONS.index("object_grabbed"), CONDITIONS.index("object_lifted")
 DEFAULTS = {"checkpoint": None, "out": "runs/grasp_losses.json", "worlds": 128, "steps": 300, "seed": 7, "env": {}}
@@ -60,14 +59,10 @@ def grasp_losses(checkpoint: str, worlds: int, steps: int, seed: int, **env) -> 
 
 
 def main(argv: list[str]) -> dict:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    if cfg.checkpoint is None:
-        raise SystemExit(__doc__)
+    cfg = settings(argv, DEFAULTS, __doc__)
     out = grasp_losses(cfg.checkpoint, int(cfg.worlds), int(cfg.steps), int(cfg.seed),
                        **OmegaConf.to_container(cfg.env))
-    out.update(provenance())
-    Path(cfg.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(cfg.out).write_text(json.dumps(out, indent=1) + "\n")
+    save(out, cfg.out)
     print(out)
     return out
 

@@ -13,11 +13,9 @@ policy tipped the box in 55 of 200 trials, the hand-run chain's in 32).
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -25,8 +23,9 @@ from omegaconf import OmegaConf
 
 from pnp.task import OBS_FIELDS
 from pnp.training.keys import STAGE
-from pnp.training.provenance import provenance
 from pnp.training.rollout import GRABBED, TIPPED_TILT, box_up_z, load_policy, run_trials, summarise
+
+from analysis_cli import save, settings
 
 _GRASP_CMD = OBS_FIELDS["ego"]["last_action"].start + 7  # the action just taken: its grasp entry
 DEFAULTS = {"checkpoint": None, "out": "runs/knock_overs.json", "trials": 200, "seed": 777, "tilt_rad": TIPPED_TILT,
@@ -87,14 +86,10 @@ def knock_overs(checkpoint: str, trials: int, seed: int, tilt_rad: float, lie_st
 
 
 def main(argv: list[str]) -> dict:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    if cfg.checkpoint is None:
-        raise SystemExit(__doc__)
+    cfg = settings(argv, DEFAULTS, __doc__)
     out = knock_overs(cfg.checkpoint, int(cfg.trials), int(cfg.seed), float(cfg.tilt_rad), int(cfg.lie_steps),
                       **OmegaConf.to_container(cfg.env))
-    out.update(provenance())
-    Path(cfg.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(cfg.out).write_text(json.dumps(out, indent=1) + "\n")
+    save(out, cfg.out)
     print({k: out[k] for k in ("success_rate", "tipped_trials", "tipped_and_succeeded", "s0_toggles_per_step",
                                "failure_causes")})
     return out

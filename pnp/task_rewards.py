@@ -52,6 +52,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "joint_limits": joint_limit_excess(s.arm_q),
         "fall": g.fell.float(),
         "gripper_toggle": (((p > 0.5) != (last_action[..., 7] > 0.5)) & ~g.grasped).float(),
+        "object_tilt": torch.where(g.grasped.any(1, keepdim=True), 0.0, box(1 - s.box_rot[:, 2, 2])),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -133,6 +133,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "joint_limits": torch.clamp((s.arm_q - mid).abs() - 0.95 * half, min=0.0).sum(-1),
         "fall": g.fell.float(),
         "gripper_toggle": ((action[..., 7] > 0.5).ne(last_action[..., 7] > 0.5) & ~g.grasped).float(),
+        "object_tilt": (1 - s.box_rot[:, None, 2, 2]).expand(-1, R) * (~g.grasped.any(1, keepdim=True)).float(),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -167,3 +167,23 @@ def test_gripper_toggle_counts_flips_of_the_command_while_nothing_is_held():
         assert T.reward_terms(s, held, action, last, T.stage_conditions(s, held))[..., col].eq(0).all()
     finally:
         env.close()
+
+
+def test_object_tilt_costs_the_unheld_box_leaving_upright():
+    env = PnPEnv(num_worlds=3, num_robots=1, backend="kinematic", seed=0, nthread=1)
+    try:
+        env.reset()
+        col = REWARD_TERMS.index("object_tilt")
+        action = env._last_action.clone()
+        s = env.backend.state(env._goal, env._init_goal_dist, action[..., 7])
+        c, sn = math.cos(math.pi / 3), math.sin(math.pi / 3)  # upright, tilted 60 deg about x, on its side
+        rots = [torch.eye(3), torch.tensor([[1.0, 0, 0], [0, c, -sn], [0, sn, c]]),
+                torch.tensor([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])]
+        s = dataclasses.replace(s, box_rot=torch.stack(rots))
+        g = dataclasses.replace(T.geometry(s), grasped=torch.zeros(3, 1, dtype=torch.bool))
+        tilt = T.reward_terms(s, g, action, action, T.stage_conditions(s, g))[:, 0, col]
+        assert torch.allclose(tilt, torch.tensor([0.0, 0.5, 1.0]), atol=1e-6)
+        held = dataclasses.replace(g, grasped=torch.ones(3, 1, dtype=torch.bool))
+        assert T.reward_terms(s, held, action, action, T.stage_conditions(s, held))[..., col].eq(0).all()
+    finally:
+        env.close()

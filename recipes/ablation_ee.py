@@ -39,7 +39,7 @@ from pnp.training.config import register  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
-from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
+from pnp.training.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.tasks import schedule_of  # noqa: E402
 from pnp.training.trainer import train  # noqa: E402
 
@@ -179,11 +179,8 @@ def run_seed(cfg: DictConfig, method: str, overrides: list[str], seed: int) -> t
     tcfg = train_config(cfg, method, overrides, seed)
     path = Path(cfg.records_dir) / f"{method}_s{seed}.json"
     settings = {"eval_trials": int(cfg.eval_trials), "eval_seed": int(cfg.eval_seed)}
-    kept = load_record(path, tcfg)
-    if (kept is None or kept["eval_settings"] != settings
-            or kept["result"]["budget"]["iterations"] != int(cfg.iterations)):
-        kept = finish_run(tcfg, settings, f"{method} seed {seed}")
-        save_record(path, tcfg, kept)
+    kept = reuse_or_finish(path, tcfg, settings, lambda: finish_run(tcfg, settings, f"{method} seed {seed}"),
+                           holds=lambda k: k["result"]["budget"]["iterations"] == int(cfg.iterations))
     return kept["result"], kept["rows"], str(tcfg.env.backend)
 
 

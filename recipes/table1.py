@@ -48,7 +48,7 @@ from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pi
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
-from pnp.training.run_records import compact, load_record, save_record  # noqa: E402
+from pnp.training.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
 from pnp.training.table1_report import markdown  # noqa: E402
 from pnp.training.trainer import make_training  # noqa: E402
@@ -289,10 +289,7 @@ def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict],
     evals = {"eval_kinematic": OmegaConf.to_container(cfg.eval_kinematic, resolve=True)}
     if seed in cfg.mujoco_seeds:
         evals["eval"] = OmegaConf.to_container(cfg.eval, resolve=True)
-    kept = load_record(path, tcfg)
-    if kept is None or kept.get("eval_settings") != evals:
-        kept = finish_run(cfg, tcfg, full, evals)
-        save_record(path, tcfg, kept)
+    kept = reuse_or_finish(path, tcfg, evals, lambda: finish_run(cfg, tcfg, full, evals))
     rows = kept["rows"]
     record = {**efficiency(rows, cfg.thresholds, int(cfg.window)), **kept["record"]}
     return record, rows, full, [tuple(p) for p in kept["phase_starts"]]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -54,3 +55,15 @@ def save_record(path: Path, cfg: DictConfig, payload: dict) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps({"config": OmegaConf.to_container(cfg, resolve=True), "record": payload}) + "\n")
     tmp.replace(path)  # a stop mid-write leaves the old record or none, never half of one
+
+
+def reuse_or_finish(path: Path, cfg: DictConfig, eval_settings: dict, finish: Callable[[], dict],
+                    holds: Callable[[dict], bool] = lambda payload: True) -> dict:
+    """The record at ``path`` while it was written by a run of ``cfg`` evaluated under
+    ``eval_settings`` (and ``holds`` of it), else ``finish()``'s payload, saved there first.
+    Payloads carry their ``eval_settings``: an evaluation setting changes no training key."""
+    kept = load_record(path, cfg)
+    if kept is None or kept.get("eval_settings") != eval_settings or not holds(kept):
+        kept = finish()
+        save_record(path, cfg, kept)
+    return kept

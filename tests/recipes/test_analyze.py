@@ -14,6 +14,7 @@ from pnp.terms import CONDITIONS
 from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
+import approach  # noqa: E402
 import box_contacts  # noqa: E402
 import grasp_losses  # noqa: E402
 import knock_overs  # noqa: E402
@@ -108,3 +109,13 @@ def test_box_contacts_names_robot_parts_and_writes_its_summary(tmp_path):
     named = {box_contacts.part_of(model, g) for g in range(model.ngeom)}
     assert {"finger", "palm", "arm"} <= named and None in named  # the floor, goal and box are no robot part
     assert all(box_contacts.part_of(model, int(g)) is None for g in backend.idx.box_geoms)
+
+
+def test_approach_reports_the_ee_handle_geometry_and_writes_its_summary(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    out = approach.main([f"checkpoint={tmp_path / 'run'}/checkpoint.pt", f"out={tmp_path / 'a.json'}", "trials=3",
+                         "near_m=10.0", "env.num_worlds=3", "env.max_episode_steps=5", "env.nthread=1"])
+    assert json.loads((tmp_path / "a.json").read_text()) == json.loads(json.dumps(out))
+    assert out["trials"] == 3 and out["near_steps"] > 0  # within 10 m every unheld step counts
+    xy, dz, speed, align = (out["near"][k] for k in approach.COLUMNS)
+    assert xy[0] <= xy[1] <= xy[2] and dz[0] <= dz[1] <= dz[2] and speed[0] >= 0.0 and 0.0 <= align[0] <= align[2] <= 1.0

@@ -44,8 +44,7 @@ class Approach:
         self.last_ee: torch.Tensor | None = None  # [W, R, 3]; NaN after a reset: no speed on a first step
 
     def after_step(self, env, nxt) -> None:
-        base = env.base_env
-        s = base.backend.state(base._goal, base._init_goal_dist, base._last_action[..., 7])
+        s = env.base_env.physical_state()
         g = T.geometry(s)
         speed = torch.full(s.ee_pos.shape[:2], math.nan) if self.last_ee is None else \
             (s.ee_pos - self.last_ee).norm(dim=-1) / self.dt

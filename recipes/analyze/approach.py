@@ -13,10 +13,8 @@ near it; the pipeline's ~1 cm, with the fingers at the box's height (docs/pipeli
 """
 from __future__ import annotations
 
-import collections
 import math
 import sys
-import time
 
 import numpy as np
 import torch
@@ -24,9 +22,9 @@ from omegaconf import OmegaConf
 
 import pnp.task as T
 from pnp.task import HL_DT
-from pnp.training.rollout import GRABBED, box_up_z, load_policy, run_trials, summarise
+from pnp.training.rollout import GRABBED, box_up_z
 
-from analysis_cli import save, settings
+from analysis_cli import OnsetWindow, hooked_trials, save, settings
 
 DEFAULTS = {"checkpoint": None, "out": "runs/approach.json", "trials": 100, "seed": 777, "near_m": 0.15,
             "tilt_deg": 30.0, "window": 6, "env": {"num_worlds": 100}}
@@ -38,8 +36,7 @@ class Approach:
 
     def __init__(self, n_worlds: int, near_m: float, tilt_deg: float, window: int, dt: float):
         self.near_m, self.cos, self.dt = near_m, math.cos(math.radians(tilt_deg)), dt
-        self.recent = [collections.deque(maxlen=int(window)) for _ in range(n_worlds)]
-        self.onset: list[list | None] = [None] * n_worlds
+        self.onsets = OnsetWindow(n_worlds, window)  # samples: [R, 4] rows per step
         self.near: list[np.ndarray] = []
         self.last_ee: torch.Tensor | None = None  # [W, R, 3]; NaN after a reset: no speed on a first step
 
@@ -56,18 +53,14 @@ class Approach:
         self.near.append(rows[near].numpy())
         up_z = box_up_z(nxt["agents"]["object"][:, 0])
         for w in torch.nonzero(unheld).flatten().tolist():
-            if self.onset[w] is None:
-                self.recent[w].extend(rows[w].tolist())
-                if float(up_z[w]) < self.cos:
-                    self.onset[w] = list(self.recent[w])
+            self.onsets.push(w, rows[w].tolist(), float(up_z[w]) < self.cos)
 
     def record(self, world: int) -> dict:
-        return {"onset": self.onset[world]}
+        onset = self.onsets.onset[world]
+        return {"onset": None if onset is None else [row for step in onset for row in step]}
 
     def reset(self, done: torch.Tensor) -> None:
-        for w in torch.nonzero(done).flatten().tolist():
-            self.recent[w].clear()
-            self.onset[w] = None
+        self.onsets.reset(done)
         if self.last_ee is not None:
             self.last_ee[done] = math.nan
 
@@ -82,19 +75,13 @@ def percentiles(rows: np.ndarray) -> dict:
 
 
 def approach(checkpoint: str, trials: int, seed: int, near_m: float, tilt_deg: float, window: int, **env) -> dict:
-    num_worlds = int(env.pop("num_worlds", trials))
-    pol, t0 = load_policy(checkpoint, min(num_worlds, trials), seed, **env), time.monotonic()
-    base = pol.env.base_env
-    hook = Approach(base.num_worlds, near_m, tilt_deg, window, dt=HL_DT)
-    records = run_trials(pol.env, pol.actor, trials, hook=hook)
-    pol.env.close()
+    records, hook, header = hooked_trials(
+        checkpoint, trials, seed, lambda base: Approach(base.num_worlds, near_m, tilt_deg, window, dt=HL_DT), env)
     onsets = [r["onset"] for r in records if r["onset"]]
     near = np.concatenate(hook.near) if hook.near else np.zeros((0, len(COLUMNS)))
-    return {"checkpoint": str(checkpoint), "iteration": int(pol.ckpt["counters"]["iteration"]), "seed": seed,
-            "env": env, "num_worlds": base.num_worlds, "near_m": near_m, "tilt_deg": tilt_deg, "window": window,
-            **summarise(records), "near_steps": len(near), "near": percentiles(near), "onsets": len(onsets),
-            "before_onset": percentiles(np.array([row for o in onsets for row in o]).reshape(-1, len(COLUMNS))),
-            "wall_s": time.monotonic() - t0}
+    return {**header, "near_m": near_m, "tilt_deg": tilt_deg, "window": window, "near_steps": len(near),
+            "near": percentiles(near), "onsets": len(onsets),
+            "before_onset": percentiles(np.array([row for o in onsets for row in o]).reshape(-1, len(COLUMNS)))}
 
 
 def main(argv: list[str]) -> dict:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import collections
 import math
 import sys
-import time
 
 import mujoco
 import numpy as np
@@ -25,9 +24,9 @@ import torch
 from omegaconf import OmegaConf
 
 from pnp.physics import FULL
-from pnp.training.rollout import GRABBED, box_up_z, load_policy, run_trials, summarise
+from pnp.training.rollout import GRABBED, box_up_z
 
-from analysis_cli import save, settings
+from analysis_cli import OnsetWindow, hooked_trials, save, settings
 
 DEFAULTS = {"checkpoint": None, "out": "runs/box_contacts.json", "trials": 100, "seed": 777, "tilt_deg": 30.0,
             "window": 6, "env": {"num_worlds": 100, "backend": "mujoco"}}
@@ -58,8 +57,7 @@ class BoxContacts:
         self.parts = {g: part_of(self.model, g) for g in range(self.model.ngeom)}
         self.data = mujoco.MjData(self.model)
         self.cos = math.cos(math.radians(tilt_deg))
-        self.recent = [collections.deque(maxlen=int(window)) for _ in range(n_worlds)]
-        self.onset: list[set | None] = [None] * n_worlds
+        self.onsets = OnsetWindow(n_worlds, window)  # samples: the parts touching the box per step
         self.unheld = [set() for _ in range(n_worlds)]
 
     def touching(self, world: int) -> set:
@@ -81,36 +79,28 @@ class BoxContacts:
         for w in torch.nonzero(~held).flatten().tolist():
             parts = self.touching(w)
             self.unheld[w] |= parts
-            if self.onset[w] is None:
-                self.recent[w].append(parts)
-                if float(up_z[w]) < self.cos:
-                    self.onset[w] = set().union(*self.recent[w])
+            self.onsets.push(w, parts, float(up_z[w]) < self.cos)
 
     def record(self, world: int) -> dict:
-        onset = self.onset[world]
-        return {"unheld_parts": sorted(self.unheld[world]), "onset_parts": None if onset is None else sorted(onset)}
+        onset = self.onsets.onset[world]
+        return {"unheld_parts": sorted(self.unheld[world]),
+                "onset_parts": None if onset is None else sorted(set().union(*onset))}
 
     def reset(self, done: torch.Tensor) -> None:
+        self.onsets.reset(done)
         for w in torch.nonzero(done).flatten().tolist():
-            self.recent[w].clear()
-            self.onset[w], self.unheld[w] = None, set()
+            self.unheld[w] = set()
 
 
 def box_contacts(checkpoint: str, trials: int, seed: int, tilt_deg: float, window: int, **env) -> dict:
-    num_worlds = int(env.pop("num_worlds", trials))
-    pol, t0 = load_policy(checkpoint, min(num_worlds, trials), seed, **env), time.monotonic()
-    hook = BoxContacts(pol.env.base_env.backend, pol.env.base_env.num_worlds, tilt_deg, window)
-    records = run_trials(pol.env, pol.actor, trials, hook=hook)
-    pol.env.close()
+    records, _, header = hooked_trials(
+        checkpoint, trials, seed, lambda base: BoxContacts(base.backend, base.num_worlds, tilt_deg, window), env)
     tilted = [r for r in records if r["onset_parts"] is not None]
     count = lambda key, rs: dict(collections.Counter(p for r in rs for p in r[key]))  # noqa: E731
-    return {"checkpoint": str(checkpoint), "iteration": int(pol.ckpt["counters"]["iteration"]), "seed": seed,
-            "env": env, "num_worlds": pol.env.base_env.num_worlds, "tilt_deg": tilt_deg, "window": window,
-            **summarise(records), "tilted_unheld_trials": len(tilted),
+    return {**header, "tilt_deg": tilt_deg, "window": window, "tilted_unheld_trials": len(tilted),
             "tilted_without_contact_before": sum(not r["onset_parts"] for r in tilted),
             "parts_before_onset": count("onset_parts", tilted), "parts_touching_unheld": count("unheld_parts", records),
-            "success_rate_tilted": float(np.mean([r["success"] for r in tilted])) if tilted else None,
-            "wall_s": time.monotonic() - t0}
+            "success_rate_tilted": float(np.mean([r["success"] for r in tilted])) if tilted else None}
 
 
 def main(argv: list[str]) -> dict:

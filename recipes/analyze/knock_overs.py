@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 
 import numpy as np
 import torch
@@ -23,9 +22,9 @@ from omegaconf import OmegaConf
 
 from pnp.task import OBS_FIELDS
 from pnp.training.keys import STAGE
-from pnp.training.rollout import GRABBED, TIPPED_TILT, box_up_z, load_policy, run_trials, summarise
+from pnp.training.rollout import GRABBED, TIPPED_TILT, box_up_z
 
-from analysis_cli import save, settings
+from analysis_cli import hooked_trials, save, settings
 
 _GRASP_CMD = OBS_FIELDS["ego"]["last_action"].start + 7  # the action just taken: its grasp entry
 DEFAULTS = {"checkpoint": None, "out": "runs/knock_overs.json", "trials": 200, "seed": 777, "tilt_rad": TIPPED_TILT,
@@ -67,22 +66,16 @@ class KnockOvers:
 
 
 def knock_overs(checkpoint: str, trials: int, seed: int, tilt_rad: float, lie_steps: int, **env) -> dict:
-    num_worlds = int(env.pop("num_worlds", trials))
-    pol, t0 = load_policy(checkpoint, min(num_worlds, trials), seed, **env), time.monotonic()
-    hook = KnockOvers(pol.env.base_env.num_worlds, tilt_rad, lie_steps)
-    records = run_trials(pol.env, pol.actor, trials, hook=hook)
-    pol.env.close()
+    records, _, header = hooked_trials(checkpoint, trials, seed,
+                                       lambda base: KnockOvers(base.num_worlds, tilt_rad, lie_steps), env)
     tipped = [r for r in records if r["tipped"]]
     steps = lambda rs: float(np.mean([r["steps"] for r in rs])) if rs else None  # noqa: E731
     s0 = sum(r["s0_steps"] for r in records)
-    return {"checkpoint": str(checkpoint), "iteration": int(pol.ckpt["counters"]["iteration"]), "seed": seed,
-            "env": env, "num_worlds": pol.env.base_env.num_worlds, "tilt_rad": tilt_rad, "lie_steps": lie_steps,
-            **summarise(records), "tipped_trials": len(tipped),
+    return {**header, "tilt_rad": tilt_rad, "lie_steps": lie_steps, "tipped_trials": len(tipped),
             "tipped_and_succeeded": sum(r["success"] for r in tipped),
             "s0_toggles_per_step": sum(r["s0_toggles"] for r in records) / s0 if s0 else None,
             "success_steps_mean": {"tipped": steps([r for r in tipped if r["success"]]),
-                                   "not_tipped": steps([r for r in records if r["success"] and not r["tipped"]])},
-            "wall_s": time.monotonic() - t0}
+                                   "not_tipped": steps([r for r in records if r["success"] and not r["tipped"]])}}
 
 
 def main(argv: list[str]) -> dict:

@@ -14,6 +14,7 @@ from pnp.terms import CONDITIONS
 from tests.training._tiny import ROOT, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
+import analysis_cli  # noqa: E402
 import approach  # noqa: E402
 import box_contacts  # noqa: E402
 import grasp_losses  # noqa: E402
@@ -56,6 +57,18 @@ def test_knock_overs_counts_tips_after_lie_steps_and_s0_toggles():
     assert hook.record(0)["s0_steps"] == 3
     hook.reset(torch.tensor([True, False]))
     assert hook.record(0) == {"tipped": False, "s0_toggles": 0, "s0_steps": 0}
+
+
+def test_onset_window_keeps_the_steps_up_to_the_first_tip_until_reset():
+    win = analysis_cli.OnsetWindow(2, window=2)
+    for step, tipped in enumerate([False, False, True, True]):
+        win.push(0, step, tipped)
+    win.push(1, "a", False)
+    assert win.onset == [[1, 2], None]  # the last 2 samples up to the first tip; later ones ignored
+    win.reset(torch.tensor([True, False]))
+    win.push(0, 9, True)
+    win.push(1, "b", True)
+    assert win.onset == [[9], ["a", "b"]]
 
 
 def test_knock_overs_writes_its_summary(tmp_path):

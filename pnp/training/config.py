@@ -307,6 +307,9 @@ class TrainConfig(RunConfig):
     # Non-empty: run these phases (names in ``phases``) back to back in out_dir, each
     # warm-started from the last (pnp.training.pipeline); rerunning resumes where it stopped.
     pipeline: List[str] = field(default_factory=list)
+    # A run folder whose finished phases this pipeline declares alike (names and overrides, from
+    # the first on): a new out_dir starts after them, from their checkpoints there (an A/B of a later phase).
+    branch_from: Optional[str] = None
 
 
 # Keys that old checkpoints hold and the schema dropped: each with the only value that

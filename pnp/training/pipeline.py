@@ -156,7 +156,7 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None, done: list[di
     name, phase = pipeline_phases(cfg)[index]
     frames = phase_frames(cfg, index, done)
     pcfg = copy.deepcopy(cfg)  # keeps the schema: overrides are type-checked
-    pcfg.pipeline, pcfg.phases = [], {}
+    pcfg.pipeline, pcfg.phases, pcfg.branch_from = [], {}, None
     for key, value in phase.overrides.items():
         node = OmegaConf.select(pcfg, key, default="<missing>")
         if node == "<missing>":
@@ -202,6 +202,20 @@ def load_state(out_dir: Path) -> list[dict]:
     return json.loads(path.read_text())["phases"] if path.is_file() else []
 
 
+def shared_phases(source_dir: Path, phases: list) -> list[dict]:
+    """The finished phases of the pipeline in ``source_dir`` that ``phases`` declares alike
+    (same names and overrides, from the first on): a branch reuses them and their checkpoints."""
+    shared = []
+    for d, (name, phase) in zip(load_state(source_dir), phases):
+        if d["name"] != name or d["overrides"] != OmegaConf.to_container(phase.overrides):
+            break
+        shared.append(dict(d))
+    if not shared:
+        raise ValueError(f"branch_from={source_dir}: no finished phase there is declared alike by this pipeline "
+                         f"({[name for name, _ in phases]}); nothing to branch from")
+    return shared
+
+
 def _read_rows(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
 
@@ -232,6 +246,9 @@ def run_pipeline(cfg: DictConfig) -> dict:
     phases = pipeline_phases(cfg)
     names = [name for name, _ in phases]
     done = load_state(out_dir)
+    if not done and cfg.branch_from:
+        done = shared_phases(Path(cfg.branch_from), phases)
+        (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
     if [d["name"] for d in done] != names[: len(done)]:
         raise ValueError(f"{out_dir / STATE} records phases {[d['name'] for d in done]}, this pipeline is {names}: "
                          "a different pipeline; use another out_dir")

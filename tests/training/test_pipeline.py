@@ -179,6 +179,27 @@ def test_an_unknown_override_and_another_pipelines_folder_are_refused(tmp_path):
         run_pipeline(changed)
 
 
+def test_a_branch_reuses_the_phases_declared_alike_and_trains_on_from_their_checkpoints(tmp_path):
+    base = run_pipeline(_cfg(tmp_path / "a"))
+    # the same near phase, another far phase: the branch keeps a's near and trains its own far
+    far_b = PHASES[1].replace("collect.frames_per_batch: 40", "collect.frames_per_batch: 40, loss.entropy_coeff: 0.0")
+    branch = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'b'}", PHASES[0], far_b, f"branch_from={tmp_path / 'a'}"])
+    out = run_pipeline(branch)
+    near, far = out["phases"]
+    assert near == base["phases"][0] and near["checkpoint"].startswith(str(tmp_path / "a"))
+    assert far["checkpoint"].startswith(str(tmp_path / "b")) and far["overrides"]["loss.entropy_coeff"] == 0.0
+    ckpt = load_checkpoint(tmp_path / "b" / "1_far" / "checkpoint.pt")
+    assert ckpt["cfg"]["warm_start"] == near["checkpoint"] and ckpt["cfg"]["branch_from"] is None
+    assert not (tmp_path / "b" / "0_near").exists()
+    # rerun without branch_from: the record in b resumes as any pipeline's
+    again = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'b'}", PHASES[0], far_b])
+    assert run_pipeline(again)["phases"] == out["phases"]
+    unrelated = compose_cfg("train", [*TINY, f"out_dir={tmp_path / 'c'}", "pipeline=[other]",
+                                      "++phases={other: {max_frames: 40}}", f"branch_from={tmp_path / 'a'}"])
+    with pytest.raises(ValueError, match="no finished phase there is declared alike"):
+        run_pipeline(unrelated)
+
+
 def test_a_mapping_override_adds_keys_to_a_free_form_map_but_not_to_a_typed_node(tmp_path):
     gates = "++phases={a: {overrides: {curriculum.stage_gates: {object_to_goal_vel: 3}}}}"
     run_gate = "++curriculum.stage_gates.object_to_goal_dist=3"

@@ -40,7 +40,7 @@ from pnp.locomotion import (
 from pnp.robot import ARM_DEFAULT, ARM_SPEED, FINGER_STROKE
 
 SETTINGS = ("command_low", "command_high", "command_resample_s", "stand_share", "arm_resample_s", "payload_mass",
-             "push_interval_s", "push_speed", "fall_height", "fall_tilt", "leg_kp", "leg_kd", "action_scale")
+             "push_interval_s", "push_speed", "fall_height", "fall_tilt", "leg_kp", "leg_kd", "action_scale", "tracking_sigma")
 
 
 def _steps(seconds: float, name: str) -> int:
@@ -104,6 +104,9 @@ class LocomotionEnv(RobotEnvBase):
         self.push_speed = _range(s.push_speed, "push_speed")
         self.fall_height, self.fall_tilt = float(s.fall_height), float(s.fall_tilt)
         self.servo = LegServo(float(s.leg_kp), float(s.leg_kd), float(s.action_scale))
+        self.tracking_sigma = float(s.tracking_sigma)
+        if not self.tracking_sigma > 0:
+            raise ValueError(f"env.locomotion.tracking_sigma must be > 0, got {s.tracking_sigma!r}")
         if not (self.fall_height >= 0.0 and 0.0 < self.fall_tilt <= math.pi):
             raise ValueError(f"env.locomotion.fall_height must be >= 0 m and fall_tilt in (0, pi] rad, "
                              f"got {s.fall_height!r} and {s.fall_tilt!r}")
@@ -213,7 +216,7 @@ class LocomotionEnv(RobotEnvBase):
         air_term, self._air = feet_air_time(self._air, contact, self._last_contact, self._command)
         fell = fallen(base["height"], base["gravity"], self.fall_height, self.fall_tilt) & ~diverged
         terms = reward_terms(base, self._command, q, qd, self._last_qd, target, a, self._last_action[:, 0],
-                             air_term, fell, self.servo)
+                             air_term, fell, self.servo, self.tracking_sigma)
         self._last_contact, self._last_qd = contact, qd
         self._last_action = a.unsqueeze(1)
         limit = self._steps >= self.max_steps

@@ -278,14 +278,14 @@ def feet_air_time(air: torch.Tensor, contact: torch.Tensor, last_contact: torch.
 
 
 def reward_terms(base: dict, command, q, qd, last_qd, target, action, last_action, air_term, fell,
-                 servo: LegServo) -> torch.Tensor:
+                 servo: LegServo, tracking_sigma: float = TRACKING_SIGMA) -> torch.Tensor:
     """[N, 1, len(LOCO_REWARD_TERMS)], raw (weights are the reward schedule's)."""
     lin, ang = base["lin_vel"], base["ang_vel"]
     lin_err = (command[:, 0] - lin[:, 0]) ** 2 + (command[:, 1] - lin[:, 1]) ** 2
     acc = (qd - last_qd) / POLICY_DT
     cols = [
-        torch.exp(-lin_err / TRACKING_SIGMA),
-        torch.exp(-((command[:, 2] - ang[:, 2]) ** 2) / TRACKING_SIGMA),
+        torch.exp(-lin_err / tracking_sigma),
+        torch.exp(-((command[:, 2] - ang[:, 2]) ** 2) / tracking_sigma),
         lin[:, 2] ** 2,
         ang[:, 0] ** 2 + ang[:, 1] ** 2,
         base["gravity"][:, 0] ** 2 + base["gravity"][:, 1] ** 2,

@@ -13,7 +13,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.layout import START_RANGE
-from pnp.locomotion import ACTION_SCALE
+from pnp.locomotion import ACTION_SCALE, TRACKING_SIGMA
 from pnp.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
 
@@ -70,6 +70,9 @@ class LocomotionConfig:
     leg_kp: float = LEG_KP
     leg_kd: float = LEG_KD
     action_scale: float = ACTION_SCALE
+    # (m/s)^2 and (rad/s)^2: the tracking kernel exp(-err^2 / sigma); legged_gym's 0.25 pays
+    # 92 % of the reward at a 0.14 m/s error.
+    tracking_sigma: float = TRACKING_SIGMA
 
 
 @dataclass

@@ -188,6 +188,21 @@ def test_reward_terms_are_finite_and_signed():
     torch.testing.assert_close(outs["agents", "reward"][..., 0, 0], terms @ w)
 
 
+def test_a_narrower_tracking_kernel_pays_less_for_the_same_error():
+    g = torch.Generator().manual_seed(0)
+    actions = [torch.rand(4, 1, 12, generator=g) * 2 - 1 for _ in range(10)]
+    tracking = []
+    for sigma in (0.25, 0.05):
+        env = _env(4, tracking_sigma=sigma, push_interval_s=NO_PUSH)
+        it = iter(actions)
+        _, outs = _run(env, env.reset(), 10, action=lambda: next(it))
+        tracking.append(outs["agents", "reward_terms"][..., 0, LOCO_REWARD_TERMS.index("tracking_lin_vel")])
+    wide, narrow = tracking
+    assert (narrow <= wide + 1e-6).all() and (narrow < wide - 1e-3).any()
+    with pytest.raises(ValueError, match="tracking_sigma must be > 0, got 0.0"):
+        _env(1, tracking_sigma=0.0)
+
+
 def test_partial_reset_leaves_other_worlds_untouched():
     env = _env(4)
     td, _ = _run(env, env.reset(), 5)

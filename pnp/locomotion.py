@@ -278,7 +278,7 @@ def feet_air_time(air: torch.Tensor, contact: torch.Tensor, last_contact: torch.
 
 
 def reward_terms(base: dict, command, q, qd, last_qd, target, action, last_action, air_term, fell,
-                 servo: LegServo, tracking_sigma: float = TRACKING_SIGMA) -> torch.Tensor:
+                 servo: LegServo, tracking_sigma: float) -> torch.Tensor:
     """[N, 1, len(LOCO_REWARD_TERMS)], raw (weights are the reward schedule's)."""
     lin, ang = base["lin_vel"], base["ang_vel"]
     lin_err = (command[:, 0] - lin[:, 0]) ** 2 + (command[:, 1] - lin[:, 1]) ** 2

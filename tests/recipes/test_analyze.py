@@ -132,3 +132,25 @@ def test_approach_reports_the_ee_handle_geometry_and_writes_its_summary(tmp_path
     assert out["trials"] == 3 and out["near_steps"] > 0  # within 10 m every unheld step counts
     xy, dz, speed, align = (out["near"][k] for k in approach.COLUMNS)
     assert xy[0] <= xy[1] <= xy[2] and dz[0] <= dz[1] <= dz[2] and speed[0] >= 0.0 and 0.0 <= align[0] <= align[2] <= 1.0
+
+
+def test_a_swapped_critic_computes_what_it_computed_under_its_own_statistics():
+    import swap_critic
+    g = torch.Generator().manual_seed(0)
+    n, k = 5, 2  # observation entries, stage one-hot
+
+    def critic(scale):
+        return {"module.obs_norm.mean": torch.randn(n, generator=g), "module.obs_norm.var": scale * torch.rand(n, generator=g) + 0.1,
+                "module.obs_norm.count": torch.tensor(10.0), "module.mlp.params.0.weight": torch.randn(8, n + k, generator=g),
+                "module.mlp.params.0.bias": torch.randn(8, generator=g)}
+
+    own, other = critic(1.0), critic(3.0)
+    swapped = swap_critic.reexpress_critic(own, other)
+
+    def first_layer(sd, x, stage):
+        z = (x - sd["module.obs_norm.mean"]) / sd["module.obs_norm.var"].sqrt()
+        return torch.cat([z, stage], -1) @ sd["module.mlp.params.0.weight"].T + sd["module.mlp.params.0.bias"]
+
+    x, stage = 0.3 * torch.randn(16, n, generator=g), torch.eye(k)[torch.randint(0, k, (16,), generator=g)]
+    assert torch.allclose(first_layer(swapped, x, stage), first_layer(own, x, stage), atol=1e-4)
+    assert torch.equal(swapped["module.obs_norm.var"], other["module.obs_norm.var"])

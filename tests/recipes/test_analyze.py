@@ -20,6 +20,7 @@ import box_contacts  # noqa: E402
 import grasp_losses  # noqa: E402
 import knock_overs  # noqa: E402
 import profile_iteration  # noqa: E402
+import swap_critic  # noqa: E402
 
 
 def test_grasp_losses_counts_and_writes_provenance(tmp_path):
@@ -135,7 +136,6 @@ def test_approach_reports_the_ee_handle_geometry_and_writes_its_summary(tmp_path
 
 
 def test_a_swapped_critic_computes_what_it_computed_under_its_own_statistics():
-    import swap_critic
     g = torch.Generator().manual_seed(0)
     n, k = 5, 2  # observation entries, stage one-hot
 

@@ -37,8 +37,11 @@ class ObsNorm(nn.Module):
         self.register_buffer("var", torch.ones(n))
         self.register_buffer("count", torch.zeros(()))
 
+    def std(self) -> torch.Tensor:
+        return self.var.sqrt().clamp(min=1e-2)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ((x - self.mean) / self.var.sqrt().clamp(min=1e-2)).clamp(-self.clip, self.clip)
+        return ((x - self.mean) / self.std()).clamp(-self.clip, self.clip)
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:

@@ -16,12 +16,17 @@ import sys
 import torch
 from omegaconf import OmegaConf
 
+from pnp.training.models import ObsNorm
+
 _NORM, _W, _B = "module.obs_norm.", "module.mlp.params.0.weight", "module.mlp.params.0.bias"
 DEFAULTS = {"actor_from": None, "critic_from": None, "out": None}
 
 
 def _std(sd: dict) -> torch.Tensor:
-    return sd[_NORM + "var"].double().sqrt().clamp(min=1e-2)  # as pnp.training.models.ObsNorm
+    """The normaliser's divisor, as the network computes it."""
+    norm = ObsNorm(len(sd[_NORM + "mean"]))
+    norm.load_state_dict({k: sd[_NORM + k] for k in ("mean", "var", "count")})
+    return norm.std().double()
 
 
 def reexpress_critic(critic: dict, stats_from: dict) -> dict:

@@ -154,3 +154,20 @@ def test_a_swapped_critic_computes_what_it_computed_under_its_own_statistics():
     x, stage = 0.3 * torch.randn(16, n, generator=g), torch.eye(k)[torch.randint(0, k, (16,), generator=g)]
     assert torch.allclose(first_layer(swapped, x, stage), first_layer(own, x, stage), atol=1e-4)
     assert torch.equal(swapped["module.obs_norm.var"], other["module.obs_norm.var"])
+
+
+def test_training_curve_weights_by_episodes_and_stops_at_phases(tmp_path, capsys):
+    import training_curve
+    rows = [{"phase": p, "iteration": i, "frames": 10 * i, "episodes": e, "success_rate": s,
+             "final_stage_share/S0": 1.0 - s, "train/kl": 0.01, "train/lr": 1e-4}
+            for p, i, e, s in [(0, 1, 1, 0.0), (0, 2, 3, 1.0), (0, 3, 2, 0.5), (1, 4, 0, float("nan")), (1, 5, 4, 0.25)]]
+    path = tmp_path / "pipeline_metrics.jsonl"
+    path.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = training_curve.main([f"metrics={path}", "window=2", f"out={tmp_path / 'c.json'}"])
+    assert [(w["phase"], w["first"], w["last"]) for w in out] == [(0, 1, 2), (0, 3, 3), (1, 4, 5)]
+    assert out[0]["success"] == 0.75 and out[0]["end_s0"] == 0.25  # 3 of 4 episodes, not the rows' mean 0.5
+    assert out[2]["success"] == 0.25 and out[2]["episodes"] == 4  # the row without episodes is skipped
+    assert "| 0 | 1 | 2 |" in capsys.readouterr().out
+    assert json.loads((tmp_path / "c.json").read_text())["window"] == 2
+    with pytest.raises(ValueError, match="window must be >= 1, got 0"):
+        training_curve.windows(rows, 0)

@@ -19,6 +19,11 @@ def commit() -> str:
         return "unknown"
 
 
+# The tree the process started from: a script that writes over a tracked file in results/
+# (a re-rendered GIF) would otherwise call its own output a dirty tree.
+_COMMIT_AT_START = commit()
+
+
 def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -33,7 +38,7 @@ def machine() -> str:
 def provenance(**extra) -> dict:
     return {
         "command": " ".join([os.path.relpath(sys.executable) if "venv" in sys.executable else "python", *sys.argv]),
-        "commit": commit(),
+        "commit": _COMMIT_AT_START,
         "machine": machine(),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         **extra,

@@ -1,0 +1,22 @@
+"""Provenance records the tree a process started from."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from tests.training._tiny import ROOT
+
+
+def test_commit_is_read_at_start_not_after_the_script_wrote_its_output(tmp_path):
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "out.gif").write_text("old")
+    subprocess.run([*git, "add", "out.gif"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    script = ("import sys; sys.path.insert(0, sys.argv[1]); from pnp.training.provenance import provenance; "
+              "open('out.gif', 'w').write('new'); print(provenance()['commit'])")
+    out = subprocess.run([sys.executable, "-c", script, str(ROOT)], cwd=tmp_path, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out and not out.endswith("-dirty"), out
+    dirty = subprocess.run(["git", "status", "--porcelain"], cwd=tmp_path, capture_output=True, text=True).stdout
+    assert "out.gif" in dirty  # the script did dirty the tree, after its start

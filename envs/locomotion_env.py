@@ -202,6 +202,7 @@ class LocomotionEnv(RobotEnvBase):
         ctrl[:, i.leg_ctrl] = (target - STAND).double().numpy()
         ctrl[:, i.arm_ctrl] = self._arm_target.double().numpy()
         ctrl[:, i.finger_ctrl] = FINGER_STROKE
+        ctrl[:, i.arm_ff_ctrl] = i.arm_gravity.torques(self.backend.qpos)  # held for the tick
         diverged = torch.from_numpy(self.backend.step(ctrl, DECIMATION))
         self._steps += 1
         if diverged.any():

@@ -26,7 +26,8 @@ from pnp.backend import MujocoBackend, quat_to_matrix
 from pnp.box import BoxAsset
 from pnp.executor import LL_DT
 from pnp.locomotion import LOCO_OBS_DIM, STAND, LegServo, base_readouts, observation
-from pnp.robot import ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
+from pnp.arm_gravity import ArmGravity
+from pnp.robot import ARM_COMPENSATED, ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
 from pnp.scene import PHYSICS_DT, compose_scene
 from pnp.task import HL_DT
 
@@ -48,6 +49,7 @@ class LeggedSceneIndex:
     box_qvel: int
     leg_ctrl: np.ndarray  # [robots, 12]
     arm_ctrl: np.ndarray  # [robots, 6]
+    arm_ff_ctrl: np.ndarray  # [robots, 6] the arm's gravity feed-forward motors
     finger_ctrl: np.ndarray  # [robots, 2]
     touch: np.ndarray  # [robots, 2]
     box_body: int
@@ -73,7 +75,8 @@ def _index(model: mujoco.MjModel, num_robots: int) -> LeggedSceneIndex:
         leg_qpos=each(jq, LEG_JOINTS), leg_qvel=each(jv, LEG_JOINTS), arm_qpos=each(jq, ARM_JOINTS),
         arm_qvel=each(jv, ARM_JOINTS), finger_qpos=each(jq, ("finger_l", "finger_r")),
         box_qpos=int(model.jnt_qposadr[box_free]), box_qvel=int(model.jnt_dofadr[box_free]),
-        leg_ctrl=each(act, LEG_JOINTS), arm_ctrl=each(act, ARM_JOINTS), finger_ctrl=each(act, ("finger_l", "finger_r")),
+        leg_ctrl=each(act, LEG_JOINTS), arm_ctrl=each(act, ARM_JOINTS),
+        arm_ff_ctrl=each(act, [f"{n}_ff" for n in ARM_JOINTS]), finger_ctrl=each(act, ("finger_l", "finger_r")),
         touch=np.array([[model.sensor_adr[model.sensor(f"robot{r}/pad_{s}_touch").id] for s in "lr"] for r in R]),
         box_body=box_body, box_geoms=np.array([g for g in range(model.ngeom) if model.geom_bodyid[g] == box_body]),
     )
@@ -93,6 +96,8 @@ class LeggedMujocoBackend(MujocoBackend):
         if self.nsub % self.decimation:
             raise ValueError(f"HL step {HL_DT} s is not a whole number of LL ticks of {LL_DT} s at dt={physics_dt}")
         self.last_leg_action = torch.zeros(num_worlds, num_robots, len(LEG_JOINTS))
+        self.arm_gravity = [ArmGravity(self.model, f"robot{r}/", int(self.idx.base_qpos[r]), ARM_COMPENSATED, ARM_JOINTS)
+                            for r in range(num_robots)]
 
     def _build_scene(self, num_robots, box, physics_dt):
         root, model, idx = build_legged_scene(num_robots, box, physics_dt)
@@ -148,6 +153,8 @@ class LeggedMujocoBackend(MujocoBackend):
             ctrl[:, :, i.leg_ctrl.reshape(-1)] = target.reshape(N, 1, -1).double().numpy()
             ctrl[:, :, i.arm_ctrl.reshape(-1)] = arm[:, sub].reshape(N, self.decimation, -1).double().numpy()
             ctrl[:, :, i.finger_ctrl.reshape(-1)] = fingers[:, sub].reshape(N, self.decimation, -1).double().numpy()
+            for r, gravity in enumerate(self.arm_gravity):  # held for the tick, as a controller's update
+                ctrl[:, :, i.arm_ff_ctrl[r]] = gravity.torques(self.physics.qpos)[:, None]
             diverged |= self.physics.step(ctrl)
         return torch.from_numpy(diverged)
 

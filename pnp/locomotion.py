@@ -27,9 +27,10 @@ import torch
 from mujoco import rollout
 
 from pnp.arm_closed_form import arm_ik
+from pnp.arm_gravity import ArmGravity
 from pnp.kinematics import clamp_reach
 from pnp.robot import (
-    ARM_JOINTS, ARM_RANGES, LEG_JOINTS, LEG_KD, LEG_KP, LEG_SPEED, LEG_TORQUE, LEGS, Quadruped, leg_ranges,
+    ARM_COMPENSATED, ARM_JOINTS, ARM_RANGES, LEG_JOINTS, LEG_KD, LEG_KP, LEG_SPEED, LEG_TORQUE, LEGS, Quadruped, leg_ranges,
     leg_servo_params, stand_pose,
 )
 from pnp.scene import PHYSICS_DT, PnPArena
@@ -121,6 +122,8 @@ class LocomotionIndex:
         self.finger_qpos = np.array([jq(n) for n in ("finger_l", "finger_r")])
         act = lambda names: np.array([model.actuator(f"robot0/{n}").id for n in names])  # noqa: E731
         self.leg_ctrl, self.arm_ctrl = act(LEG_JOINTS), act(ARM_JOINTS)
+        self.arm_ff_ctrl = act([f"{n}_ff" for n in ARM_JOINTS])
+        self.arm_gravity = ArmGravity(model, "robot0/", self.base_qpos, ARM_COMPENSATED, ARM_JOINTS)
         self.finger_ctrl = act(("finger_l", "finger_r"))
         self.gripper_body = int(model.body("robot0/gripper").id)
         self.foot_contact = np.array([model.sensor_adr[model.sensor(f"{leg}_foot_floor").id] for leg in LEGS])

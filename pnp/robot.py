@@ -50,6 +50,8 @@ ARM_TORQUE = 40.0  # N m
 ARM_SPEED = 4.0  # rad/s
 ARM_LINK_MASSES = (2.0, 3.0, 1.0, 1.5, 1.0, 0.5)  # ours, ~9 kg + 1 kg gripper = ~10-11 kg
 ARM_JOINTS = ("arm_j1", "arm_j2", "arm_j3", "arm_j4", "arm_j5", "arm_j6")
+# Bodies the arm controller holds against gravity (not the fingers' 0.32 kg, as before legs).
+ARM_COMPENSATED = ("arm_link1", "arm_link2", "arm_link3", "arm_link4", "arm_link5", "arm_link6", "gripper")
 # Ours, narrower than the real arm's: the elbow stops short of straight, the shoulder of
 # pointing up, and the forearm roll and wrist pitch exclude the flipped-wrist branch, so
 # warm-started IK stays on one solution branch (yaw comes from j1 and j6).
@@ -150,7 +152,7 @@ class Quadruped(composer.Entity):
         else:
             trunk.set_attributes(contype=LEG_CONTYPE, conaffinity=LEG_CONAFFINITY)
             self._add_actuated_legs(root, base)
-        self._add_arm(base)
+        self._add_arm(base, gravcomp=1 if rigid else 0)
         if rigid:
             for jn in ("base_x", "base_y"):
                 root.actuator.add("velocity", name=jn, joint=jn, kv=3000.0, forcerange=(-3000, 3000), forcelimited=True)
@@ -160,6 +162,9 @@ class Quadruped(composer.Entity):
                 "position", name=jn, joint=jn, kp=600.0, kv=40.0, ctrlrange=(lo, hi), ctrllimited=True,
                 forcerange=(-ARM_TORQUE, ARM_TORQUE), forcelimited=True,
             )
+        if not rigid:  # the arm controller's gravity feed-forward (pnp.arm_gravity), unlimited as gravcomp
+            for jn in ARM_JOINTS:
+                root.actuator.add("motor", name=f"{jn}_ff", joint=jn, gear=(1,))
         for fn in ("finger_l", "finger_r"):
             root.actuator.add(
                 "position", name=fn, joint=fn, kp=FINGER_KP, kv=30.0, ctrlrange=(0, FINGER_STROKE), ctrllimited=True,
@@ -179,10 +184,7 @@ class Quadruped(composer.Entity):
             raise ValueError("only legs='actuated' floats; the rigid robot rides its own planar joints")
         x, y, _ = attachment_frame.pos if attachment_frame.pos is not None else (0.0, 0.0, 0.0)
         attachment_frame.pos = (x, y, LEGGED_STAND_HEIGHT)
-        # The arm's gravcomp is its controller's feed-forward: torques between trunk and arm
-        # links. MuJoCo would also put its share on the free joint, lifting the robot by
-        # the arm's weight (90 N); a joint with actuatorgravcomp and no actuator gets none.
-        attachment_frame.add("joint", name="base_free", type="free", actuatorgravcomp=True)
+        attachment_frame.add("joint", name="base_free", type="free")
 
     def _add_legs(self, base):
         # Legs as rigid capsules in the standing pose: visual plus box collisions only.
@@ -235,33 +237,34 @@ class Quadruped(composer.Entity):
             if b.parent is not a:  # MuJoCo already drops parent-child pairs
                 root.contact.add("exclude", body1=a, body2=b)
 
-    def _add_arm(self, base):
+    def _add_arm(self, base, gravcomp: int):
         r = ARM_RANGES
         m = ARM_LINK_MASSES
-        # gravcomp: the LL controller's gravity feed-forward for the arm's own links.
+        # gravcomp: the LL controller's gravity feed-forward for the arm's own links
+        # (ARM_COMPENSATED). Only on the planar robot: on a free joint MuJoCo would lift the trunk.
         j = dict(type="hinge", armature=0.05, damping=1.0, limited=True)
-        l1 = base.add("body", name="arm_link1", pos=ARM_MOUNT, gravcomp=1)
+        l1 = base.add("body", name="arm_link1", pos=ARM_MOUNT, gravcomp=gravcomp)
         l1.add("joint", name="arm_j1", axis=(0, 0, 1), range=r[0], **j)
         l1.add("geom", type="cylinder", fromto=(0, 0, 0, 0, 0, SHOULDER_HEIGHT), size=(0.055,), mass=m[0])
-        l2 = l1.add("body", name="arm_link2", pos=(0, 0, SHOULDER_HEIGHT), gravcomp=1)
+        l2 = l1.add("body", name="arm_link2", pos=(0, 0, SHOULDER_HEIGHT), gravcomp=gravcomp)
         l2.add("joint", name="arm_j2", axis=(0, 1, 0), range=r[1], **j)
         l2.add("geom", type="capsule", fromto=(0, 0, 0, UPPER_ARM, 0, 0), size=(0.045,), mass=m[1])
-        l3 = l2.add("body", name="arm_link3", pos=(UPPER_ARM, 0, 0), gravcomp=1)
+        l3 = l2.add("body", name="arm_link3", pos=(UPPER_ARM, 0, 0), gravcomp=gravcomp)
         l3.add("joint", name="arm_j3", axis=(0, 1, 0), range=r[2], **j)
         l3.add("geom", type="capsule", fromto=(0, 0, 0, 0.1, 0, 0), size=(0.04,), mass=m[2])
-        l4 = l3.add("body", name="arm_link4", pos=(0.1, 0, 0), gravcomp=1)
+        l4 = l3.add("body", name="arm_link4", pos=(0.1, 0, 0), gravcomp=gravcomp)
         l4.add("joint", name="arm_j4", axis=(1, 0, 0), range=r[3], **j)
         l4.add("geom", type="capsule", fromto=(0, 0, 0, FOREARM - 0.1, 0, 0), size=(0.035,), mass=m[3])
-        l5 = l4.add("body", name="arm_link5", pos=(FOREARM - 0.1, 0, 0), gravcomp=1)
+        l5 = l4.add("body", name="arm_link5", pos=(FOREARM - 0.1, 0, 0), gravcomp=gravcomp)
         l5.add("joint", name="arm_j5", axis=(0, 1, 0), range=r[4], **j)
         l5.add("geom", type="capsule", fromto=(0, 0, 0, WRIST, 0, 0), size=(0.03,), mass=m[4])
-        l6 = l5.add("body", name="arm_link6", pos=(WRIST, 0, 0), gravcomp=1)
+        l6 = l5.add("body", name="arm_link6", pos=(WRIST, 0, 0), gravcomp=gravcomp)
         l6.add("joint", name="arm_j6", axis=(1, 0, 0), range=r[5], **j)
-        self._add_gripper(l6)
+        self._add_gripper(l6, gravcomp)
 
-    def _add_gripper(self, flange):
+    def _add_gripper(self, flange, gravcomp: int):
         # Gripper frame: x along the approach direction; fingers close along y.
-        g = flange.add("body", name="gripper", pos=(0, 0, 0), gravcomp=1)
+        g = flange.add("body", name="gripper", pos=(0, 0, 0), gravcomp=gravcomp)
         g.add("geom", name="palm", type="box", pos=(0.04, 0, 0), size=(0.04, 0.075, 0.03), mass=GRIPPER_MASS * 0.7)
         g.add("site", name="ee_site", pos=(GRIPPER_LEN, 0, 0), size=(0.012,), rgba=(1, 0, 0, 0.6))
         fx = GRIPPER_LEN

@@ -33,7 +33,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from pnp.training.provenance import provenance  # noqa: E402
 
 from pnp.box import SINGLE_ROBOT_BOXES, HandleBox  # noqa: E402
-from pnp.robot import ARM_DEFAULT, ARM_JOINTS, FINGER_STROKE, LEG_JOINTS, Quadruped  # noqa: E402
+from pnp.arm_gravity import ArmGravity  # noqa: E402
+from pnp.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, FINGER_STROKE, LEG_JOINTS, Quadruped  # noqa: E402
 from pnp.scene import PnPArena, build_scene  # noqa: E402
 
 BOX = SINGLE_ROBOT_BOXES[0]
@@ -65,6 +66,9 @@ def _start(model: mujoco.MjModel) -> tuple[mujoco.MjData, np.ndarray]:
         ctrl[model.actuator(f"robot0/{name}").id] = FINGER_STROKE
     box = model.jnt_qposadr[[j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE][-1]]
     data.qpos[box : box + 3] = (1.2, 0.0, BOX.size[2] / 2)
+    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, "robot0/arm_j1_ff") >= 0:  # legged: the arm's feed-forward
+        ff = ArmGravity(model, "robot0/", 0, ARM_COMPENSATED, ARM_JOINTS).torques(data.qpos[None])[0]
+        ctrl[[model.actuator(f"robot0/{n}_ff").id for n in ARM_JOINTS]] = ff
     data.ctrl[:] = ctrl
     for _ in range(round(SETTLE_S / model.opt.timestep)):
         mujoco.mj_step(model, data)

@@ -81,7 +81,9 @@ def test_reward_config_is_legged_gym_times_dt_with_one_stage():
 
 
 def test_zero_action_keeps_standing_for_two_seconds():
-    env = _env(8, push_interval_s=NO_PUSH)  # the arm still moves and carries its payload
+    # The pipeline's servos (kp 250 / kd 6): at kp 80 the arm's weight, carried by the legs
+    # since the gravcomp lift was removed, sinks a zero-action stand to 0.49 m.
+    env = _env(8, push_interval_s=NO_PUSH, leg_kp=250.0, leg_kd=6.0)  # the arm still moves and carries its payload
     td = env.reset()
     env.set_command(torch.zeros(3))
     _, outs = _run(env, td, round(2.0 / POLICY_DT))

@@ -36,7 +36,9 @@ def test_standing_policy_holds_the_trunk_and_the_arm_tracks():
         assert not b.step(a).any()
     s = b.state(torch.zeros(2, 2), torch.ones(2), torch.zeros(2, 1))
     assert ((s.base_z > 0.5) & (s.base_z < 0.7)).all()  # stands (0.633 m measured)
-    assert s.base[..., :2].abs().max() < 0.1  # a standing policy does not walk
+    # A standing policy does not walk: the kp-80 stand, carrying the arm's weight since the
+    # lift was removed, settles back ~0.10 m in 1 s (was < 0.1 m with it).
+    assert s.base[..., :2].abs().max() < 0.15
     calls = b.policy.calls
     assert len(calls) == 10 * 5 and calls[0].shape == (2, LOCO_OBS_DIM)  # 50 Hz, one row per robot
     assert torch.allclose(calls[-1][:, LOCO_OBS_FIELDS["command"]], torch.tensor([0.3, 0.0, 0.2]).expand(2, 3))

@@ -57,7 +57,7 @@ def test_actuated_model_floats_on_twelve_leg_servos(legged):
     assert [m.joint(j).name for j in free] == ["robot0/base_free/"]
     assert all(f"robot0/{n}" not in [m.joint(j).name for j in range(m.njnt)] for n in ("base_x", "base_y", "base_yaw"))
     legs = _ids(m, [f"robot0/{n}" for n in LEG_JOINTS], "actuator")
-    assert [m.actuator(a).name for a in range(m.nu)] == [f"robot0/{n}" for n in (*LEG_JOINTS, *ARM_JOINTS, "finger_l", "finger_r")]
+    assert [m.actuator(a).name for a in range(m.nu)] == [f"robot0/{n}" for n in (*LEG_JOINTS, *ARM_JOINTS, *(f"{n}_ff" for n in ARM_JOINTS), "finger_l", "finger_r")]
     np.testing.assert_allclose(m.actuator_gainprm[legs, 0], LEG_KP)
     np.testing.assert_allclose(m.actuator_biasprm[legs, 1:3], np.tile([-LEG_KP, -LEG_KD], (12, 1)))
     np.testing.assert_allclose(m.actuator_forcerange[legs], np.tile([-LEG_TORQUE, LEG_TORQUE], (12, 1)))
@@ -71,8 +71,8 @@ def test_actuated_model_floats_on_twelve_leg_servos(legged):
     mujoco.mj_forward(m, d)
     np.testing.assert_allclose(d.actuator_force[legs], 0.0, atol=1e-9)
     assert d.qpos[2] == pytest.approx(LEGGED_STAND_HEIGHT)
-    # The arm's gravcomp acts on the arm joints only, never lifting the floating base.
-    np.testing.assert_allclose(d.qfrc_passive[:6], 0.0, atol=1e-9)
+    # No gravcomp in the model: the arm's feed-forward is its motors' (tests/pnp/test_arm_gravity.py).
+    np.testing.assert_allclose(d.qfrc_gravcomp, 0.0, atol=1e-9)
     # Published trunk and legs (8.3 kg each, split over the links) plus the unchanged arm: 61 kg.
     leg_masses = [m.body_subtreemass[m.body(f"robot0/{leg}_hip").id] for leg in ("LF", "RF", "LH", "RH")]
     np.testing.assert_allclose(leg_masses, LEG_MASS)

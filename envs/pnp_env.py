@@ -37,7 +37,7 @@ from torchrl.envs import EnvBase
 
 from pnp.backend import Backend, MujocoBackend
 from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
-from pnp.layout import START_RANGE, sample_layout
+from pnp.layout import START_RANGE, paired_layouts, sample_layout
 from pnp.task import (
     ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState, default_reward, geometry,
     observations, reward_terms, stage_conditions, update_claims,
@@ -173,7 +173,7 @@ class PnPEnv(RobotEnvBase):
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
                  start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
-                 handle_order: str = "identity", handle_claim: bool = False):
+                 handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if grasp_sampling not in ("threshold", "bernoulli"):
@@ -184,6 +184,8 @@ class PnPEnv(RobotEnvBase):
         self.handle_order = handle_order
         # Each robot keeps the handle it was given at the episode start (pnp.task.update_claims).
         self.handle_claim = bool(handle_claim)
+        # Evaluation: each reset starts the next trial, whose layout comes from (seed, trial).
+        self.paired_trials = bool(paired_trials)
         self._init_worlds(num_worlds, num_robots, int(round(EPISODE_S / HL_DT)), device)
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
@@ -197,6 +199,7 @@ class PnPEnv(RobotEnvBase):
         self._was_lifted = torch.zeros(N, dtype=torch.bool)
         self._success_step = torch.full((N,), -1, dtype=torch.long)
         self._claim = torch.full((N, R), -1, dtype=torch.long)
+        self.trial = torch.full((N,), -1, dtype=torch.long)  # the trial each world runs (paired_trials)
         self.clipped_count = 0  # (world, robot) actions clipped since construction
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
@@ -228,8 +231,23 @@ class PnPEnv(RobotEnvBase):
         return a.clamp(lo, hi)
 
     # --- EnvBase hooks -------------------------------------------------------------------
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if self.paired_trials and (tensordict is None or "_reset" not in tensordict.keys()):
+            self._next_trial = 0  # a full reset starts the trials over; a partial one goes on
+        return super()._reset(tensordict, **kwargs)
+
+    def _set_seed(self, seed: int | None):
+        super()._set_seed(seed)
+        self._trial_seed, self._next_trial = int(seed) if seed is not None else 0, 0
+
     def _reset_worlds(self, ids: torch.Tensor):
-        layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range)
+        if self.paired_trials:  # trials numbered in reset order; worlds in index order
+            self.trial[ids] = self._next_trial + torch.arange(len(ids))
+            self._next_trial += len(ids)
+            layout = paired_layouts(self._trial_seed, self.trial[ids], self.num_robots, self.box_assets,
+                                    start_range=self.start_range)
+        else:
+            layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range)
         self.backend.reset(ids, layout)
         self._goal[ids] = 0.0
         self._init_goal_dist[ids] = layout.box_xy_yaw[:, :2].norm(dim=-1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from pnp.backend import Layout
@@ -51,3 +52,21 @@ def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[B
         box_size=edges * scale,
         box_mass=mass,
     )
+
+
+def trial_generator(seed: int, trial: int) -> torch.Generator:
+    """The random stream of trial ``trial`` under evaluation seed ``seed``: a function of the
+    pair alone (NumPy's SeedSequence mixes both into independent 63-bit seeds)."""
+    if trial < 0:
+        raise ValueError(f"trial index must be >= 0, got {trial}")
+    state = np.random.SeedSequence([int(seed) & (2**63 - 1), int(trial)]).generate_state(1, np.uint64)[0]
+    return torch.Generator().manual_seed(int(state) & (2**63 - 1))
+
+
+def paired_layouts(seed: int, trials: torch.Tensor, num_robots: int, assets: tuple[BoxAsset, ...],
+                   start_range: tuple[float, float] = START_RANGE) -> Layout:
+    """Layouts of trials ``trials`` [m]: trial i's depends on ``(seed, i)`` only, so every policy
+    meets the same trials whatever the world count or the order in which episodes end."""
+    parts = [sample_layout(trial_generator(seed, int(i)), 1, num_robots, assets, start_range=start_range)
+             for i in trials.tolist()]
+    return Layout(**{f: torch.cat([getattr(p, f) for p in parts]) for f in ("base", "box_xy_yaw", "box_size", "box_mass")})

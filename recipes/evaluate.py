@@ -24,7 +24,9 @@ from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
-from pnp.training.provenance import provenance, write_result
+from pnp.training.paired import comparison_md, paired_comparison
+from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
 
@@ -38,7 +40,7 @@ def table_md(result: dict, method: str) -> str:
     return (
         "| Method | Success rate (%) | Completion time (s) |\n| --- | --- | --- |\n"
         f"| *{group}* | | |\n| {method} | {100 * result['success_rate']:.1f} | {time_s} |\n\n"
-        f"{result['trials']} trials on the {result['backend']} backend, seed {result['seed']}, starts "
+        f"{result['trials']} paired trials on the {result['backend']} backend, seed {result['seed']} ({result['seed_role']}), starts "
         f"{result['start_range_m'][0]}-{result['start_range_m'][1]} m from the goal; failures: {causes}.\n"
         f"Checkpoint `{result['checkpoint']}` (iteration {result['checkpoint_iteration']})"
         + (f"; legs: `{result['low_level_checkpoint']}`" if result.get("low_level") == "learned" else "") + ".\n"
@@ -70,15 +72,21 @@ def evaluate(cfg: DictConfig) -> dict:
     t0 = time.monotonic()
     sample = check_groups(cfg.sample)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
-    pol = load_policy(ckpt_path, min(int(cfg.env.num_worlds), int(cfg.trials)), int(cfg.seed), **overrides)
+    num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
+    pol = load_policy(ckpt_path, num_worlds, int(cfg.seed), **overrides)
     records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample)
     pol.env.close()
     env, counters, trained = pol.cfg.env, pol.ckpt["counters"], pol.cfg
+    prov = provenance()
+    source = launch_source(pol.ckpt.get("launches", []))
     result = {
         "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),
         "start_range_m": [float(x) for x in env.start_range],
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)),
-        **summarise(records), "seed": int(cfg.seed), "checkpoint": str(ckpt_path),
+        **summarise(records), "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)),
+        "reporting_seed": REPORTING_SEED, "paired": True,
+        "experiment": source["experiment"], "launch_overrides": source["launch_overrides"],
+        "config_sha": config_sha(pol.ckpt["cfg"]), "checkpoint": str(ckpt_path),
         "checkpoint_iteration": int(counters["iteration"]), "checkpoint_frames": int(counters["frames"]),
         # This run's training (a warm-started run's source trained before: see warm_started_from).
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
@@ -88,8 +96,23 @@ def evaluate(cfg: DictConfig) -> dict:
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
         "low_level": env.low_level,
         "low_level_checkpoint": str(resolve_checkpoint(env.low_level_checkpoint, cfg.runs_root)) if env.low_level == "learned" else None,
-        "wall_s": time.monotonic() - t0, **provenance(),
+        # Per trial (trial, success, steps, cause): any later evaluation on this seed pairs with it.
+        "trial_records": [[r["trial"], int(r["success"]), r["steps"], r["cause"]] for r in records],
+        **prov,
     }
+    if prov["commit"].endswith("-dirty"):
+        if cfg.dirty_reason is None and Path(str(cfg.out or "")).parts[:1] == ("results",):
+            raise ValueError(f"a figure for results/ from a dirty tree ({prov['commit']}): commit first, "
+                             "or say why with dirty_reason=...")
+        result["dirty_reason"] = cfg.dirty_reason
+    comparison = None
+    if cfg.compare is not None:  # a second policy on the same trials
+        other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, int(cfg.seed), **overrides)
+        other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample)
+        other.env.close()
+        comparison = paired_comparison(records, other_records)
+        result["comparison"] = {"checkpoint_b": str(cfg.compare), **summarise(other_records), **comparison}
+    result["wall_s"] = time.monotonic() - t0
     if selection is not None:
         result["selection"] = str(selection)
     if phases:  # a pipeline folder: every phase's cost
@@ -99,7 +122,10 @@ def evaluate(cfg: DictConfig) -> dict:
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env.backend}.json"
     method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})" + (
         f", sampled {'+'.join(sample)}" if sample else "")
-    return write_result(result, out, table_md(result, method))
+    markdown = table_md(result, method)
+    if comparison is not None:
+        markdown += "\n" + comparison_md(comparison, "this checkpoint", f"`{cfg.compare}`")
+    return write_result(result, out, markdown)
 
 
 @hydra.main(config_path="config", config_name="evaluate", version_base="1.3")

@@ -92,6 +92,8 @@ class EnvConfig:
     handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
     grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
+    # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/evaluation.md).
+    paired_trials: bool = False
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
     # ideal: planar base, IK arm (pnp.executor). learned: legs walked by a locomotion policy
     # (pnp.legged_backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.

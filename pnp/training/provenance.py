@@ -1,6 +1,7 @@
 """Who, where and how a result was produced: stored beside every figure in results/."""
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -54,3 +55,27 @@ def write_result(result: dict, out, markdown: str) -> dict:
     out.with_suffix(".md").write_text(markdown)
     result["json"], result["markdown"] = str(out), str(out.with_suffix(".md"))
     return result
+
+
+# Where a run lives or how it is watched, not what it trains: left out of the config hash.
+_LOCATION_KEYS = ("out_dir", "resume", "runs_root", "progress", "logger", "checkpoint_every_min", "branch_from")
+
+
+def config_sha(cfg) -> str:
+    """Short SHA-256 of a resolved training configuration, without the run's location keys."""
+    from omegaconf import OmegaConf
+
+    data = OmegaConf.to_container(cfg, resolve=True) if not isinstance(cfg, dict) else dict(cfg)
+    data = {k: v for k, v in data.items() if k not in _LOCATION_KEYS}
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def launch_source(launches: list[dict]) -> dict:
+    """The experiment a checkpoint's last launch named (``experiment=`` or ``distill_experiment=``)
+    and its other command-line overrides; ``None`` where the launch named none."""
+    if not launches:
+        return {"experiment": None, "launch_overrides": []}
+    args = launches[-1]["command"].split()[2:]
+    name = next((a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in ("experiment", "distill_experiment")), None)
+    rest = [a for a in args if a.split("=", 1)[0] not in ("experiment", "distill_experiment", "out_dir")]
+    return {"experiment": name, "launch_overrides": rest}

@@ -73,6 +73,7 @@ def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> 
     env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
     env.grasp_sampling = "threshold"  # the deterministic policy's gripper command
     env.terminate_on_success = True  # a trial ends at its success (completion time)
+    env.paired_trials = True  # trial i's layout from (seed, i) alone (docs/evaluation.md)
     for key, value in env_overrides.items():
         if key not in env:
             raise ValueError(f"evaluation: unknown env override {key!r}; env keys are {sorted(env)}")
@@ -174,15 +175,17 @@ class TrialHook(Protocol):
 
 def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, sample=None,
                hook: TrialHook | None = None) -> list[dict]:
-    """Exactly ``trials`` episodes with the deterministic (mean) action, in finishing order
-    (``sample``: action groups drawn from the policy instead, a diagnostic; ``hook``: see
-    :class:`TrialHook`).
+    """Exactly ``trials`` episodes with the deterministic (mean) action (``sample``: action
+    groups drawn from the policy instead, a diagnostic; ``hook``: see :class:`TrialHook`).
 
-    With W worlds each world runs ceil(N / W) episodes; the first N to finish (by step,
-    then world index) are the trials. One record per trial: world, end step, success,
-    cause, steps, end stage and peak stage (highest of any robot), and the hook's entries."""
+    On an env with ``paired_trials`` (evaluation), the trials are trials 0..N-1 of the env's
+    seed, whatever the world count: records come back in trial order, each with its
+    ``trial``. Otherwise each of W worlds runs ceil(N / W) episodes and the first N to finish
+    (by step, then world index) are the trials. One record per trial: world, end step,
+    success, cause, steps, end stage and peak stage (highest of any robot), and the hook's entries."""
     groups = check_groups(sample)
-    n_worlds = env.base_env.num_worlds
+    base = env.base_env
+    n_worlds, paired = base.num_worlds, bool(getattr(base, "paired_trials", False))
     per_world = math.ceil(trials / n_worlds)
     count = torch.zeros(n_worlds, dtype=torch.long)
     lifted = torch.zeros(n_worlds, dtype=torch.bool)
@@ -191,7 +194,8 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
     bar = tqdm(total=trials, disable=not progress, desc="trials")
     td, recurrent = init_state(env.reset(), actor), recurrent_net(actor) is not None
     with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
-        while bool((count < per_world).any()):
+        while len(records) < trials if paired else bool((count < per_world).any()):
+            running = base.trial.clone() if paired else None  # done worlds are reset within the step
             td = _act(actor, td, groups)
             out, td = env.step_and_maybe_reset(td)
             if recurrent:
@@ -204,12 +208,14 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
             stage = nxt[STAGE].reshape(n_worlds, -1).max(-1).values
             peak = torch.maximum(peak, stage)
             done = nxt["done"].view(n_worlds)
-            worlds = (done & (count < per_world)).nonzero().view(-1)
+            keep = (running < trials) if paired else (count < per_world)
+            worlds = (done & keep).nonzero().view(-1)
             if len(worlds):
                 for w, cause in zip(worlds.tolist(), classify_failures(nxt, worlds, lifted)):
                     records.append({"world": w, "end_step": step, "success": cause is None, "cause": cause,
                                     "steps": int(nxt["step_count"][w, 0]), "end_stage": int(stage[w]),
-                                    "peak_stage": int(peak[w]), **(hook.record(w) if hook is not None else {})})
+                                    "peak_stage": int(peak[w]), **({"trial": int(running[w])} if paired else {}),
+                                    **(hook.record(w) if hook is not None else {})})
                 count[worlds] += 1
                 bar.update(min(len(worlds), max(0, trials - bar.n)))
             lifted &= ~done
@@ -217,6 +223,8 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
             if hook is not None:
                 hook.reset(done)
     bar.close()
+    if paired:
+        return sorted(records, key=lambda r: r["trial"])
     records.sort(key=lambda r: (r["end_step"], r["world"]))
     return records[:trials]
 

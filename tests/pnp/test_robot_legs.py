@@ -3,9 +3,10 @@ import mujoco
 import numpy as np
 import pytest
 
+from pnp.arm_gravity import ArmGravity
 from pnp.box import SINGLE_ROBOT_BOXES, HandleBox
 from pnp.robot import (
-    ARM_DEFAULT, ARM_JOINTS, LEG_JOINTS, LEG_KD, LEG_KP, LEG_MASS, LEG_SPEED, LEG_TORQUE,
+    ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, LEG_JOINTS, LEG_KD, LEG_KP, LEG_MASS, LEG_SPEED, LEG_TORQUE,
     LEGGED_STAND_HEIGHT, STANDING_HEIGHT, TRUNK_MASS, Quadruped, leg_ranges, stand_pose,
 )
 from pnp.scene import PnPArena, build_scene
@@ -91,7 +92,11 @@ def test_pd_hold_keeps_the_trunk_standing(legged):
     d.qvel[1] = 0.2  # and pushed sideways: a symmetric drop alone cannot show a lateral tip-over
     leg_dofs = m.jnt_dofadr[_ids(m, [f"robot0/{n}" for n in LEG_JOINTS])]
     heights, uprights, speed = [], [], 0.0
-    for _ in range(round(2.0 / m.opt.timestep)):
+    gravity = ArmGravity(m, "robot0/", 0, ARM_COMPENSATED, ARM_JOINTS)
+    ff = _ids(m, [f"robot0/{n}_ff" for n in ARM_JOINTS], "actuator")
+    for step in range(round(2.0 / m.opt.timestep)):
+        if step % 4 == 0:  # the arm's feed-forward, once per low-level tick as the envs do
+            d.ctrl[ff] = gravity.torques(d.qpos[None])[0]
         mujoco.mj_step(m, d)
         speed = max(speed, np.abs(d.qvel[leg_dofs]).max())
         heights.append(d.qpos[2])
@@ -100,7 +105,9 @@ def test_pd_hold_keeps_the_trunk_standing(legged):
     # published 0.59 m.
     assert abs(heights[-1] - STANDING_HEIGHT) < 0.06 and heights[-1] < LEGGED_STAND_HEIGHT
     assert min(heights) > STANDING_HEIGHT - 0.03
-    assert min(uprights) > np.cos(np.radians(5))
+    # 7.0 deg at worst (measured): the arm's 10 kg ahead of the trunk, no longer lifted by
+    # MuJoCo's gravcomp (under 5 deg with it), pitches the kp 80 stand forward.
+    assert min(uprights) > np.cos(np.radians(10))
     assert speed < LEG_SPEED  # the model does not enforce it; a hold stays far below
     # Stays where it stood (kd 2 leaves a slow, lightly damped sway of a few cm and degrees).
     assert np.linalg.norm(d.qpos[:2]) < 0.05 and abs(2 * np.arctan2(d.qpos[6], d.qpos[3])) < 0.1

@@ -24,12 +24,18 @@ def test_evaluate_recipe_writes_the_table_and_its_provenance(tmp_path):
     tiny_train(tmp_path / "run", "total_iterations=2")
     result = evaluate_recipe.evaluate(compose_cfg("evaluate", [
         f"checkpoint={tmp_path / 'run'}", "trials=6", "env.num_worlds=4", "env.max_episode_steps=15",
-        f"out={tmp_path / 'eval.json'}", "progress=false",
+        f"out={tmp_path / 'eval.json'}", "progress=false", f"compare={tmp_path / 'run'}",
     ]))
     saved = json.loads((tmp_path / "eval.json").read_text())
     for key in ("backend", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
-                "command", "commit", "seed", "machine", "wall_s", "env_steps", "train_wall_s", "warm_started_from"):
+                "command", "commit", "seed", "machine", "wall_s", "env_steps", "train_wall_s", "warm_started_from",
+                "reporting_seed", "config_sha", "experiment"):
         assert key in saved, key
+    assert saved["paired"] is True and saved["seed_role"] == "development"
+    assert [t[0] for t in saved["trial_records"]] == list(range(6))
+    # The same checkpoint compared with itself on the same trials: no discordant trial.
+    c = saved["comparison"]
+    assert c["only_a_succeeded"] == c["only_b_succeeded"] == 0 and c["success_diff"] == 0.0
     assert saved["backend"] == "kinematic" and saved["trials"] == 6 == result["trials"]
     assert saved["start_range_m"] == [0.6, 5.0] and saved["max_episode_s"] == 1.5  # paper's layouts by default
     assert sum(saved["failure_causes"].values()) == round(saved["trials"] * (1 - saved["success_rate"]))

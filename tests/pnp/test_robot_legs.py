@@ -5,6 +5,7 @@ import pytest
 
 from pnp.arm_gravity import ArmGravity
 from pnp.box import SINGLE_ROBOT_BOXES, HandleBox
+from pnp.locomotion import LegServo
 from pnp.robot import (
     ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, LEG_JOINTS, LEG_KD, LEG_KP, LEG_MASS, LEG_SPEED, LEG_TORQUE,
     LEGGED_STAND_HEIGHT, STANDING_HEIGHT, TRUNK_MASS, Quadruped, leg_ranges, stand_pose,
@@ -82,8 +83,10 @@ def test_actuated_model_floats_on_twelve_leg_servos(legged):
     assert 60.0 < m.body_subtreemass[m.body("robot0/base").id] < 63.0
 
 
-def test_pd_hold_keeps_the_trunk_standing(legged):
-    m = legged
+@pytest.mark.parametrize("kp, kd", [(LEG_KP, LEG_KD), (250.0, 6.0)])  # robot.py's; the trained legs'
+def test_pd_hold_keeps_the_trunk_standing(kp, kd):
+    m = _legged_scene()
+    LegServo(kp=kp, kd=kd).apply(m, _ids(m, [f"robot0/{n}" for n in LEG_JOINTS], "actuator"))
     d = mujoco.MjData(m)
     arm_q = m.jnt_qposadr[_ids(m, [f"robot0/{n}" for n in ARM_JOINTS])]
     d.qpos[arm_q] = ARM_DEFAULT
@@ -101,16 +104,15 @@ def test_pd_hold_keeps_the_trunk_standing(legged):
         speed = max(speed, np.abs(d.qvel[leg_dofs]).max())
         heights.append(d.qpos[2])
         uprights.append(1 - 2 * (d.qpos[4] ** 2 + d.qpos[5] ** 2))  # world z of the trunk's z axis
-    # kp 80 sags ~2 cm below the straight-link stand (0.653 m): ~0.633 m, 4 cm above the
-    # published 0.59 m.
+    # Measured with the arm's weight on the legs (no gravcomp lift): kp 80 sags to 0.600 m,
+    # pitches 7.0 deg and creeps 0.17 m in 2 s (with the lift: 0.633 m, < 5 deg, < 5 cm);
+    # kp 250 / kd 6 holds 0.645 m, 0.7 deg, 1.4 cm.
+    soft = kp < 100
     assert abs(heights[-1] - STANDING_HEIGHT) < 0.06 and heights[-1] < LEGGED_STAND_HEIGHT
-    assert min(heights) > STANDING_HEIGHT - 0.03
-    # 7.0 deg at worst (measured): the arm's 10 kg ahead of the trunk, no longer lifted by
-    # MuJoCo's gravcomp (under 5 deg with it), pitches the kp 80 stand forward.
-    assert min(uprights) > np.cos(np.radians(10))
+    assert min(heights) > STANDING_HEIGHT - (0.03 if soft else 0.0)
+    assert min(uprights) > np.cos(np.radians(10 if soft else 2))
     assert speed < LEG_SPEED  # the model does not enforce it; a hold stays far below
-    # Stays where it stood (kd 2 leaves a slow, lightly damped sway of a few cm and degrees).
-    assert np.linalg.norm(d.qpos[:2]) < 0.05 and abs(2 * np.arctan2(d.qpos[6], d.qpos[3])) < 0.1
+    assert np.linalg.norm(d.qpos[:2]) < (0.25 if soft else 0.05) and abs(2 * np.arctan2(d.qpos[6], d.qpos[3])) < 0.15
     floor = m.geom("floor").id
     on_floor = {m.geom(c.geom1 + c.geom2 - floor).name for c in d.contact[: d.ncon] if floor in (c.geom1, c.geom2)}
     assert on_floor == {f"robot0/{leg}_foot" for leg in ("LF", "RF", "LH", "RH")}

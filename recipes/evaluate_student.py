@@ -23,7 +23,10 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.provenance import provenance, write_result
+from pnp.training.paired import comparison_md, paired_comparison
+from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.provenance import config_sha, launch_source, provenance, write_result
+from pnp.training.rollout import summarise
 from pnp.training.student import evaluate_views
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
@@ -39,7 +42,7 @@ def table_md(result: dict) -> str:
         rows.append(f"| {label} | {100 * r['success_rate']:.1f} | {time_s} |")
     return ("| Policy | Success rate (%) | Completion time (s) |\n| --- | --- | --- |\n" + "\n".join(rows) +
             f"\n\n{result['trials']} trials each on the {result['backend']} backend, {result['num_robots']} "
-            f"robot(s), seed {result['seed']}. Student `{result['checkpoint']}` (iteration "
+            f"robot(s), seed {result['seed']} ({result['seed_role']}), the same trials for each. Student `{result['checkpoint']}` (iteration "
             f"{result['checkpoint_iteration']}), teacher `{result['teacher']}`.\n")
 
 
@@ -48,9 +51,13 @@ def evaluate(cfg: DictConfig) -> dict:
     t0 = time.monotonic()
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    ecfg, ckpt, runs = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), bool(cfg.progress),
+    ecfg, ckpt, records = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), bool(cfg.progress),
                                       cfg.noise_scale, cfg.dropout_p, **overrides)
+    runs = {name: summarise(r) for name, r in records.items()}
     env, counters, student = ecfg.env, ckpt["counters"], runs["student"]
+    prov, source = provenance(), launch_source(ckpt.get("launches", []))
+    # Same layouts for all three (paired trials); the observation noise is drawn per run.
+    comparisons = {f"student_vs_{t}": paired_comparison(records["student"], records[t]) for t in ("teacher_noisy", "teacher_clean")}
     result = {
         "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),
         "start_range_m": [float(x) for x in env.start_range],
@@ -59,15 +66,26 @@ def evaluate(cfg: DictConfig) -> dict:
         "completion_time_mean_s": student["completion_time_mean_s"],
         "completion_time_std_s": student["completion_time_std_s"], **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": int(cfg.seed), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
+        "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)), "reporting_seed": REPORTING_SEED,
+        "paired": True, "comparisons": comparisons, "experiment": source["experiment"],
+        "launch_overrides": source["launch_overrides"], "config_sha": config_sha(ckpt["cfg"]),
+        "trial_records": {n: [[x["trial"], int(x["success"]), x["steps"], x["cause"]] for x in r] for n, r in records.items()},
+        "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
         "teacher": str(ecfg.distill.teacher), "beta": float(ecfg.distill.beta),
         "direction": str(ecfg.distill.direction), "trained_backend": ckpt["cfg"]["env"]["backend"],
         "training_launches": ckpt.get("launches", []),
-        "wall_s": time.monotonic() - t0, **provenance(),
+        "wall_s": time.monotonic() - t0, **prov,
     }
+    if prov["commit"].endswith("-dirty"):
+        if cfg.dirty_reason is None and Path(str(cfg.out or "")).parts[:1] == ("results",):
+            raise ValueError(f"a figure for results/ from a dirty tree ({prov['commit']}): commit first, "
+                             "or say why with dirty_reason=...")
+        result["dirty_reason"] = cfg.dirty_reason
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_student_{env.backend}.json"
-    return write_result(result, out, table_md(result))
+    markdown = table_md(result) + "".join(
+        "\n" + comparison_md(c, "student", k.split("_vs_")[1]) for k, c in comparisons.items())
+    return write_result(result, out, markdown)
 
 
 @hydra.main(config_path="config", config_name="evaluate_student", version_base="1.3")

@@ -11,11 +11,21 @@ import time
 from pathlib import Path
 
 
+# Written figures, not inputs: a batch of evaluations rewriting results/*.json is still the
+# committed code (checkpoints in results/ are inputs and do count).
+_OUTPUT_SUFFIXES = (".json", ".md", ".png", ".gif")
+
+
+def _counts_as_dirty(porcelain_line: str) -> bool:
+    path = porcelain_line[3:].strip()
+    return not (path.startswith("results/") and path.endswith(_OUTPUT_SUFFIXES))
+
+
 def commit() -> str:
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout
-        return out.stdout.strip() + ("-dirty" if dirty.strip() else "")
+        return out.stdout.strip() + ("-dirty" if any(_counts_as_dirty(x) for x in dirty.splitlines()) else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

@@ -258,7 +258,7 @@ def evaluate_views(path: str | Path, trials: int, num_worlds: int, seed: int, pr
     (:data:`EVALUATIONS`), in evaluation envs (``rollout.evaluation_env_config``) built
     alike from the same seed. ``noise_scale`` and ``dropout_p`` replace the training noise
     model's (None keeps it). Returns the evaluation configuration, the student checkpoint
-    and the ``summarise`` figures by run."""
+    and the trial records by run (paired: the same trials for each)."""
     ckpt = load_checkpoint(Path(path))
     cfg = distill_config(ckpt["cfg"])
     if noise_scale is not None:  # checked where the noise is built, as in training
@@ -274,6 +274,6 @@ def evaluate_views(path: str | Path, trials: int, num_worlds: int, seed: int, pr
             actor = load_student_actor(cfg, env, ckpt)
         else:
             actor = Teacher(cfg, env).actor
-        results[name] = summarise(run_trials(env, actor, trials, progress))
+        results[name] = run_trials(env, actor, trials, progress)
         env.close()
     return cfg, ckpt, results

@@ -198,6 +198,9 @@ def test_evaluate_student_recipe_writes_all_three_runs_and_the_provenance(teache
     for key in ("backend", "trials", "success_rate", "noise", "teacher", "command", "commit", "machine", "wall_s"):
         assert key in saved, key
     assert saved["success_rate"] == saved["student"]["success_rate"] and saved["backend"] == "kinematic"
+    # Paired: each policy met trials 0..3 of the seed, and the comparisons count them.
+    assert all([t[0] for t in saved["trial_records"][run]] == [0, 1, 2, 3] for run in saved["trial_records"])
+    assert saved["paired"] is True and saved["comparisons"]["student_vs_teacher_clean"]["trials"] == 4
     assert result["trials"] == 4 and (tmp_path / "eval.md").read_text().startswith("| Policy |")
 
 

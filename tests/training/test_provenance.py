@@ -20,3 +20,25 @@ def test_commit_is_read_at_start_not_after_the_script_wrote_its_output(tmp_path)
     assert out and not out.endswith("-dirty"), out
     dirty = subprocess.run(["git", "status", "--porcelain"], cwd=tmp_path, capture_output=True, text=True).stdout
     assert "out.gif" in dirty  # the script did dirty the tree, after its start
+
+
+def test_rewritten_figures_in_results_are_not_a_dirty_tree_but_code_and_checkpoints_are(tmp_path):
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "results").mkdir()
+    files = {"results/eval.json": "{}", "results/ckpt.pt": "w", "code.py": "x = 1"}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    script = "import sys; sys.path.insert(0, sys.argv[1]); from pnp.training.provenance import commit; print(commit())"
+
+    def state(changed: str) -> str:
+        subprocess.run([*git, "checkout", "-q", "."], cwd=tmp_path, check=True)
+        (tmp_path / changed).write_text("changed")
+        return subprocess.run([sys.executable, "-c", script, str(ROOT)], cwd=tmp_path, capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+    assert not state("results/eval.json").endswith("-dirty")
+    assert state("results/ckpt.pt").endswith("-dirty")
+    assert state("code.py").endswith("-dirty")

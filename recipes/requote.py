@@ -1,0 +1,76 @@
+"""Every quoted evaluation re-run at HEAD on the reporting seed, 500 paired trials each.
+
+    python recipes/requote.py                      # all rows below, one after another
+    python recipes/requote.py eval_single_pnp repro_dual_pnp   # some of them
+
+Each row runs ``recipes/evaluate.py`` (or ``evaluate_student.py``) on a committed checkpoint
+into ``results/<name>.json``. What the evaluation does not produce (a pipeline's phases and
+cost, its selection, notes) is carried over from the committed file, and that file's former
+figure is kept under ``previous_evaluation`` so that the move is visible. The reporting seed
+(``pnp.training.protocol``) is for quoting only: see docs/evaluation.md.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pnp.training.protocol import REPORTING_SEED  # noqa: E402
+
+LEGS = ["env.low_level=learned", "env.low_level_checkpoint=results/ll_policy_pipeline"]
+# name: (recipe, checkpoint, extra overrides)
+ROWS = {
+    "eval_single_pnp": ("evaluate", "results/train_single/checkpoint_mujoco.pt", []),
+    "repro_single_pnp": ("evaluate", "results/repro_single_pnp_checkpoint.pt", []),
+    "eval_dual_pnp": ("evaluate", "results/train_dual/dual_mj2/checkpoint.pt", []),
+    "repro_dual_pnp": ("evaluate", "results/repro_dual_pnp_checkpoint.pt", []),
+    "repro_dual_pnp_free_handles": ("evaluate", "results/repro_dual_pnp_free_handles_checkpoint.pt", []),
+    "eval_single_pnp_kinematic": ("evaluate", "results/train_single/checkpoint_kinematic.pt", []),
+    "eval_single_pnp_transfer": ("evaluate", "results/train_single/checkpoint_kinematic.pt",
+                                 ["env.backend=mujoco", "method='Ours (kinematic policy on MuJoCo, no fine-tuning)'"]),
+    "eval_student_single": ("evaluate_student", "results/eval_student_single_checkpoint.pt", []),
+    "eval_student_dual": ("evaluate_student", "results/eval_student_dual_checkpoint.pt", []),
+    "eval_single_pnp_learned_ll": ("evaluate", "results/eval_single_pnp_learned_ll_checkpoint.pt", LEGS),
+    "eval_single_pnp_learned_ll_transfer_pipeline": ("evaluate", "results/train_single/checkpoint_mujoco.pt", LEGS),
+}
+# The evaluation's own keys: everything else in a committed file is carried over.
+HEADLINE = ("seed", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
+            "commit", "date_utc", "command", "num_worlds")
+
+
+def requote(name: str) -> dict:
+    recipe, checkpoint, extra = ROWS[name]
+    out = ROOT / "results" / f"{name}.json"
+    old = json.loads(out.read_text()) if out.exists() else {}
+    cmd = [sys.executable, f"recipes/{recipe}.py", f"checkpoint={checkpoint}", f"seed={REPORTING_SEED}",
+           "trials=500", "env.num_worlds=100", "progress=false", f"out=results/{name}.json", *extra]
+    t0 = time.monotonic()
+    subprocess.run(cmd, cwd=ROOT, check=True)
+    new = json.loads(out.read_text())
+    carried = {k: v for k, v in old.items() if k not in new and k != "previous_evaluation"}
+    if "previous_evaluation" not in old and old:
+        carried["previous_evaluation"] = {k: old.get(k) for k in HEADLINE}
+    else:
+        carried["previous_evaluation"] = old.get("previous_evaluation")
+    new.update(carried)
+    out.write_text(json.dumps(new, indent=2) + "\n")
+    print(f"{name}: {100 * new['success_rate']:.1f} % (was {100 * old.get('success_rate', float('nan')):.1f} % "
+          f"on seed {old.get('seed')}), {time.monotonic() - t0:.0f} s", flush=True)
+    return new
+
+
+def main(names: list[str]) -> None:
+    unknown = [n for n in names if n not in ROWS]
+    if unknown:
+        raise SystemExit(f"unknown rows {unknown}; known: {list(ROWS)}")
+    for name in names or list(ROWS):
+        requote(name)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -68,6 +68,18 @@ class _LazyBuffers:
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 
+class _ClonesOwnBuffers:
+    """``clone()`` with buffers of its own: TorchRL's ``Transform.clone`` is a shallow copy, so
+    a clone's in-place updates (the stage histogram, per-world state) landed in the original."""
+
+    def clone(self):
+        out = super().clone()
+        for module in out.modules():
+            for name, buf in list(module.named_buffers(recurse=False)):
+                setattr(module, name, buf.clone())
+        return out
+
+
 class _EnvOnly:
     """Refuses replay buffers, whose sampled rows are not the env's worlds.
 

@@ -15,7 +15,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ._checks import _check_agent_shape, _EnvOnly, _fmt, _get, _LazyBuffers
+from ._checks import _check_agent_shape, _ClonesOwnBuffers, _EnvOnly, _fmt, _get, _LazyBuffers
 from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = ["ColumnHistory"]
@@ -31,7 +31,7 @@ def _span(what: str, cols) -> tuple[int, int]:
     return start, stop
 
 
-class ColumnHistory(_LazyBuffers, _ResetKeysMixin, _EnvOnly, Transform):
+class ColumnHistory(_ClonesOwnBuffers, _LazyBuffers, _ResetKeysMixin, _EnvOnly, Transform):
     """Appends the last ``length`` values of observation columns ``[start, stop)``.
 
     For a student that must infer its end-effector pose from the history of its arm's

@@ -16,7 +16,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from ._checks import _check_agent_shape, _EnvOnly, _fmt, _get, _LazyBuffers
+from ._checks import _check_agent_shape, _ClonesOwnBuffers, _EnvOnly, _fmt, _get, _LazyBuffers
 from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = ["ObservationNoise"]
@@ -33,7 +33,7 @@ def _columns(name: str, cols) -> tuple[int, int]:
     return start, stop
 
 
-class ObservationNoise(_LazyBuffers, _ResetKeysMixin, _EnvOnly, Transform):
+class ObservationNoise(_ClonesOwnBuffers, _LazyBuffers, _ResetKeysMixin, _EnvOnly, Transform):
     """Per-field Gaussian noise and mocap-like dropouts on an observation's columns.
 
     Noise model: ``fields`` names column ranges ``[start, stop)`` of the observation's

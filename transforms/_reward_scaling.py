@@ -27,7 +27,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ._checks import _check_agent_shape, _check_exact, _check_names, _EnvOnly, _get, _LazyBuffers
+from ._checks import _check_agent_shape, _ClonesOwnBuffers, _check_exact, _check_names, _EnvOnly, _get, _LazyBuffers
 from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = [
@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 
-class StageRewardSchedule(_ResetKeysMixin, _EnvOnly, Transform):
+class StageRewardSchedule(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
     """Base class: term bookkeeping, the reward sum and the episode-end stage histogram.
 
     Args:

@@ -19,7 +19,7 @@ from torchrl.envs.transforms.utils import _get_reset
 
 from pnp.stage_graph import StageGraph
 
-from ._checks import _check_agent_shape, _EnvOnly, _get
+from ._checks import _check_agent_shape, _ClonesOwnBuffers, _EnvOnly, _get
 
 __all__ = ["StageTransition"]
 
@@ -68,7 +68,7 @@ class _ResetKeysMixin:
         return list(parent.reset_keys) if parent is not None else ["_reset"]
 
 
-class StageTransition(_ResetKeysMixin, _EnvOnly, Transform):
+class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
     """Advances each robot's stage along a :class:`~pnp.stage_graph.StageGraph`.
 
     Reads ``conditions_key`` (bool ``[*B, A, C]``, columns in ``graph.conditions``

@@ -43,9 +43,12 @@ def test_kl_grows_when_the_policy_moves_and_matches_the_gaussian_formula(setup):
     moved[LOC] = moved[LOC] + 0.3  # as if collected by another policy
     kl = float(loss(moved)["kl"])
     assert kl > 0.01
-    old = dist_from_params(models.actor, moved)
-    new = dist_from_params(models.actor, batch)
-    torch.testing.assert_close(policy_kl(old, new).mean(), torch.tensor(kl))
+    # Written out: same scales, means 0.3 apart, so each Gaussian entry adds 0.3^2 / (2 s^2);
+    # the gripper (last entry) is a Bernoulli whose logit is its loc: p log(p/q) + (1-p) log((1-p)/(1-q)).
+    gauss = (0.3**2 / (2 * batch[SCALE][..., :7].double() ** 2)).sum(-1)
+    p, q = torch.sigmoid(moved[LOC][..., 7].double()), torch.sigmoid(batch[LOC][..., 7].double())
+    bern = p * torch.log(p / q) + (1 - p) * torch.log((1 - p) / (1 - q))
+    torch.testing.assert_close(torch.tensor(kl, dtype=torch.float64), (gauss + bern).mean(), rtol=1e-4, atol=1e-6)
 
 
 def test_tanh_normal_kl_is_the_pre_tanh_gaussians():

@@ -161,6 +161,18 @@ def test_state_dict_round_trip(kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_clone(kind):
+    # A clone of a fresh transform acts as a fresh one does on the same env...
+    reference = rollout(TransformedEnv(make_pnp_toy_env(), make_curriculum(kind, chain=True)))
     t = make_curriculum(kind, chain=True)
-    env = TransformedEnv(make_pnp_toy_env(), t.clone())
-    rollout(env, 3)
+    assert_same(rollout(TransformedEnv(make_pnp_toy_env(), t.clone())), reference)
+    # ...and a clone of a used one carries its state but never writes back into it.
+    used = TransformedEnv(make_pnp_toy_env(), t)
+    rollout(used, 7)
+    before = {k: v.clone() for k, v in t.state_dict().items()}
+    copy = t.clone()
+    assert before.keys() == copy.state_dict().keys()
+    assert all(torch.equal(before[k], v) for k, v in copy.state_dict().items())
+    rollout(TransformedEnv(make_pnp_toy_env(), copy), 9)
+    assert all(torch.equal(before[k], v) for k, v in t.state_dict().items())
+    if kind != "stage":  # the schedules keep their scales as state: the check above is not vacuous
+        assert before and any(not torch.equal(before[k], v) for k, v in copy.state_dict().items())

@@ -173,7 +173,8 @@ class PnPEnv(RobotEnvBase):
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
                  start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
-                 handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False):
+                 handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False,
+                 box_mass: tuple[float, float] | None = None):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if grasp_sampling not in ("threshold", "bernoulli"):
@@ -186,6 +187,7 @@ class PnPEnv(RobotEnvBase):
         self.handle_claim = bool(handle_claim)
         # Evaluation: each reset starts the next trial, whose layout comes from (seed, trial).
         self.paired_trials = bool(paired_trials)
+        self.box_mass = None if box_mass is None else tuple(float(x) for x in box_mass)
         self._init_worlds(num_worlds, num_robots, int(round(EPISODE_S / HL_DT)), device)
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
@@ -245,9 +247,10 @@ class PnPEnv(RobotEnvBase):
             self.trial[ids] = self._next_trial + torch.arange(len(ids))
             self._next_trial += len(ids)
             layout = paired_layouts(self._trial_seed, self.trial[ids], self.num_robots, self.box_assets,
-                                    start_range=self.start_range)
+                                    start_range=self.start_range, box_mass=self.box_mass)
         else:
-            layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range)
+            layout = sample_layout(self._rng, len(ids), self.num_robots, self.box_assets, start_range=self.start_range,
+                                   box_mass=self.box_mass)
         self.backend.reset(ids, layout)
         self._goal[ids] = 0.0
         self._init_goal_dist[ids] = layout.box_xy_yaw[:, :2].norm(dim=-1)

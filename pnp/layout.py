@@ -24,11 +24,13 @@ def _ring(rng: torch.Generator, shape, start_range=START_RANGE) -> torch.Tensor:
 
 
 def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[BoxAsset, ...], tries: int = 16,
-                  start_range: tuple[float, float] = START_RANGE) -> Layout:
+                  start_range: tuple[float, float] = START_RANGE, box_mass: tuple[float, float] | None = None) -> Layout:
     """Layouts for ``m`` worlds; rejection sampling (vectorised over ``tries`` candidates).
 
     ``start_range``: distances of robots and box from the goal (the paper's 0.6-5 m by
-    default; narrower ranges make a start-distance curriculum).
+    default; narrower ranges make a start-distance curriculum). ``box_mass``: [lo, hi] kg
+    drawn uniformly instead of the assets' masses (an evaluation condition, e.g. the paper's
+    2.0 kg hardware box); drawn after every other draw, so the rest of a layout is unchanged.
     """
     if not 0 <= start_range[0] <= start_range[1]:
         raise ValueError(f"start_range must satisfy 0 <= low <= high, got {tuple(start_range)!r}")
@@ -46,6 +48,11 @@ def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[B
     base_xy = bases[torch.arange(m), first]
     yaw = (torch.rand(m, num_robots, generator=rng) * 2 - 1) * math.pi
     box_yaw = (torch.rand(m, generator=rng) * 2 - 1) * math.pi
+    if box_mass is not None:
+        lo, hi = (float(x) for x in box_mass)
+        if not 0 < lo <= hi:
+            raise ValueError(f"box_mass must be [lo, hi] kg with 0 < lo <= hi, got {list(box_mass)!r}")
+        mass = lo + (hi - lo) * torch.rand(m, generator=rng)
     return Layout(
         base=torch.cat([base_xy, yaw.unsqueeze(-1)], -1),
         box_xy_yaw=torch.cat([box_xy, box_yaw.unsqueeze(-1)], -1),
@@ -64,9 +71,9 @@ def trial_generator(seed: int, trial: int) -> torch.Generator:
 
 
 def paired_layouts(seed: int, trials: torch.Tensor, num_robots: int, assets: tuple[BoxAsset, ...],
-                   start_range: tuple[float, float] = START_RANGE) -> Layout:
+                   start_range: tuple[float, float] = START_RANGE, box_mass: tuple[float, float] | None = None) -> Layout:
     """Layouts of trials ``trials`` [m]: trial i's depends on ``(seed, i)`` only, so every policy
     meets the same trials whatever the world count or the order in which episodes end."""
-    parts = [sample_layout(trial_generator(seed, int(i)), 1, num_robots, assets, start_range=start_range)
+    parts = [sample_layout(trial_generator(seed, int(i)), 1, num_robots, assets, start_range=start_range, box_mass=box_mass)
              for i in trials.tolist()]
     return Layout(**{f: torch.cat([getattr(p, f) for p in parts]) for f in ("base", "box_xy_yaw", "box_size", "box_mass")})

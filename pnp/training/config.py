@@ -94,6 +94,8 @@ class EnvConfig:
     grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
     # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/evaluation.md).
     paired_trials: bool = False
+    # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
+    box_mass: Optional[List[float]] = None
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
     # ideal: planar base, IK arm (pnp.executor). learned: legs walked by a locomotion policy
     # (pnp.legged_backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.

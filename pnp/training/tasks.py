@@ -42,7 +42,8 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
                   start_range=tuple(env_cfg.start_range), grasp_sampling=env_cfg.grasp_sampling,
                   terminate_on_success=bool(env_cfg.terminate_on_success), handle_order=env_cfg.handle_order,
                   handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes],
-                  paired_trials=bool(env_cfg.paired_trials))
+                  paired_trials=bool(env_cfg.paired_trials),
+                  box_mass=None if env_cfg.box_mass is None else tuple(env_cfg.box_mass))
 
 
 def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:

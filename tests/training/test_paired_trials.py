@@ -2,6 +2,7 @@
 order in which episodes end or the policy; comparisons of two policies are paired."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
@@ -71,3 +72,19 @@ def test_one_policy_meets_the_same_trials_with_32_and_100_worlds():
     # The scripted policy is deterministic per world: the same trials give the same episodes.
     assert [(r["success"], r["steps"]) for r in few] == [(r["success"], r["steps"]) for r in many]
     assert summarise(few)["success_rate"] == summarise(many)["success_rate"]
+
+
+def test_box_mass_is_an_evaluation_condition_on_the_same_trials():
+    from pnp.box import SINGLE_ROBOT_BOXES
+
+    plain = paired_layouts(3, torch.arange(5), 1, SINGLE_ROBOT_BOXES)
+    heavy = paired_layouts(3, torch.arange(5), 1, SINGLE_ROBOT_BOXES, box_mass=(2.0, 2.0))
+    assert torch.equal(heavy.box_mass, torch.full((5,), 2.0)) and not torch.equal(plain.box_mass, heavy.box_mass)
+    for field in ("base", "box_xy_yaw", "box_size"):  # everything else about the trials is unchanged
+        assert torch.equal(getattr(plain, field), getattr(heavy, field)), field
+    cfg = compose_cfg("train", ["env.num_worlds=2", "env.paired_trials=true", "env.box_mass=[2.0,2.0]"])
+    env = make_env(cfg.env, cfg.curriculum, seed=3)
+    assert torch.equal(env.base_env.backend.box_mass, torch.full((2,), 2.0))
+    env.close()
+    with pytest.raises(ValueError, match=r"box_mass .* got \[0.0, 1.0\]"):
+        paired_layouts(3, torch.arange(1), 1, SINGLE_ROBOT_BOXES, box_mass=(0.0, 1.0))

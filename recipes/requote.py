@@ -3,8 +3,8 @@
     python recipes/requote.py                      # all rows below, one after another
     python recipes/requote.py eval_single_pnp repro_dual_pnp   # some of them
 
-Each row runs ``recipes/evaluate.py`` (or ``evaluate_student.py``) on a committed checkpoint
-into ``results/<name>.json``. What the evaluation does not produce (a pipeline's phases and
+Each row of ``results/quoted.yaml`` runs ``recipes/evaluate.py`` (or ``evaluate_student.py``)
+on a committed checkpoint into ``results/<name>.json``. What the evaluation does not produce (a pipeline's phases and
 cost, its selection, notes) is carried over from the committed file, and that file's former
 figure is kept under ``previous_evaluation`` so that the move is visible. The reporting seed
 (``pnp.training.protocol``) is for quoting only: see docs/evaluation.md.
@@ -17,34 +17,23 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pnp.training.protocol import REPORTING_SEED  # noqa: E402
 
-LEGS = ["env.low_level=learned", "env.low_level_checkpoint=results/ll_policy_pipeline"]
-# name: (recipe, checkpoint, extra overrides)
-ROWS = {
-    "eval_single_pnp": ("evaluate", "results/train_single/checkpoint_mujoco.pt", []),
-    "repro_single_pnp": ("evaluate", "results/repro_single_pnp_checkpoint.pt", []),
-    "eval_dual_pnp": ("evaluate", "results/train_dual/dual_mj2/checkpoint.pt", []),
-    "repro_dual_pnp": ("evaluate", "results/repro_dual_pnp_checkpoint.pt", []),
-    "repro_dual_pnp_free_handles": ("evaluate", "results/repro_dual_pnp_free_handles_checkpoint.pt", []),
-    "eval_single_pnp_kinematic": ("evaluate", "results/train_single/checkpoint_kinematic.pt", []),
-    "eval_single_pnp_transfer": ("evaluate", "results/train_single/checkpoint_kinematic.pt",
-                                 ["env.backend=mujoco", "method='Ours (kinematic policy on MuJoCo, no fine-tuning)'"]),
-    "eval_student_single": ("evaluate_student", "results/eval_student_single_checkpoint.pt", []),
-    "eval_student_dual": ("evaluate_student", "results/eval_student_dual_checkpoint.pt", []),
-    "eval_single_pnp_learned_ll": ("evaluate", "results/eval_single_pnp_learned_ll_checkpoint.pt", LEGS),
-    "eval_single_pnp_learned_ll_transfer_pipeline": ("evaluate", "results/train_single/checkpoint_mujoco.pt", LEGS),
-}
+QUOTED = ROOT / "results" / "quoted.yaml"  # name: recipe, checkpoint, experiment, overrides
+ROWS = yaml.safe_load(QUOTED.read_text())
 # The evaluation's own keys: everything else in a committed file is carried over.
 HEADLINE = ("seed", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
             "commit", "date_utc", "command", "num_worlds")
 
 
 def requote(name: str) -> dict:
-    recipe, checkpoint, extra = ROWS[name]
+    row = ROWS[name]
+    recipe, checkpoint, experiment, extra = row["recipe"], row["checkpoint"], row["experiment"], row.get("overrides", [])
     out = ROOT / "results" / f"{name}.json"
     old = json.loads(out.read_text()) if out.exists() else {}
     cmd = [sys.executable, f"recipes/{recipe}.py", f"checkpoint={checkpoint}", f"seed={REPORTING_SEED}",
@@ -52,6 +41,9 @@ def requote(name: str) -> dict:
     t0 = time.monotonic()
     subprocess.run(cmd, cwd=ROOT, check=True)
     new = json.loads(out.read_text())
+    if new.get("experiment") not in (None, experiment.split(":")[-1]):
+        raise ValueError(f"{name}: the checkpoint's launch named experiment {new['experiment']!r}, the row {experiment!r}")
+    new["experiment"] = experiment  # distill:<name> is a distill_experiment
     carried = {k: v for k, v in old.items() if k not in new and k != "previous_evaluation"}
     if "previous_evaluation" not in old and old:
         carried["previous_evaluation"] = {k: old.get(k) for k in HEADLINE}

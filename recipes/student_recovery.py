@@ -29,7 +29,8 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.provenance import provenance, write_result
+from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.recovery import CLEARANCE_M, evaluate_recovery
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
@@ -63,7 +64,7 @@ def table_md(result: dict) -> str:
     frozen = (f"Object pose frozen for {p['min_s']}-{p['max_s']} s, a dropout starting after a seen step with "
               f"probability {p['p']}.")
     where = (f"{result['trials']} trials per policy on the {result['backend']} backend, {result['num_robots']} "
-             f"robot(s), seed {result['seed']}. Student `{result['checkpoint']}` (iteration "
+             f"robot(s), seed {result['seed']} ({result['seed_role']}). Student `{result['checkpoint']}` (iteration "
              f"{result['checkpoint_iteration']}), teacher `{result['teacher']}`.")
     rows += ["", frozen, "", where]
     return "\n".join(rows) + "\n"
@@ -87,7 +88,10 @@ def evaluate(cfg: DictConfig) -> dict:
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)), "trials": int(cfg.trials),
         "displacement_settings": displacement, "dropout_settings": dropout, **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": int(cfg.seed), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
+        "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)), "reporting_seed": REPORTING_SEED,
+        # Layouts paired across policies; the displacement and noise draws are per run.
+        "paired": True, "experiment": launch_source(ckpt.get("launches", []))["experiment"],
+        "config_sha": config_sha(ckpt["cfg"]), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
         "env_steps": int(counters["frames"]), "teacher": str(ecfg.distill.teacher),
         "trained_backend": ckpt["cfg"]["env"]["backend"], "training_launches": ckpt.get("launches", []),
         "wall_s": time.monotonic() - t0, **provenance(),

@@ -21,13 +21,14 @@ test-all: $(STAMP)
 
 # Main job: the single-robot pipeline from random weights (recipes/config/experiment/
 # single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then a checkpoint chosen among
-# the last phase's snapshots on seeds 777 and 778, then 500 trials of it (seed 12345) into
-# runs/main (results/ holds only quoted figures). Ctrl-C checkpoints; re-running resumes.
+# the last phase's snapshots on the selection seeds 777 and 778, then 500 paired trials of it
+# on the reporting seed (docs/evaluation.md) into runs/main (results/ holds only quoted
+# figures). Ctrl-C checkpoints; re-running resumes.
 RUN ?= runs/main
 train: $(STAMP)
 	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline out_dir=$(RUN) $(ARGS)
 	$(PY) recipes/select_checkpoint.py run=$(RUN)
-	$(PY) recipes/evaluate.py checkpoint=$(RUN) selected=true env.num_worlds=100 out=$(RUN)/eval_single_pnp.json
+	$(PY) recipes/evaluate.py checkpoint=$(RUN) selected=true seed=reporting out=$(RUN)/eval_single_pnp.json
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py

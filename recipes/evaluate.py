@@ -25,7 +25,7 @@ from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
 from pnp.training.paired import comparison_md, paired_comparison
-from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
 from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
@@ -73,7 +73,7 @@ def evaluate(cfg: DictConfig) -> dict:
     sample = check_groups(cfg.sample)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    pol = load_policy(ckpt_path, num_worlds, int(cfg.seed), **overrides)
+    pol = load_policy(ckpt_path, num_worlds, resolve_seed(cfg.seed), **overrides)
     records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample)
     pol.env.close()
     env, counters, trained = pol.cfg.env, pol.ckpt["counters"], pol.cfg
@@ -83,7 +83,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),
         "start_range_m": [float(x) for x in env.start_range],
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)),
-        **summarise(records), "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)),
+        **summarise(records), "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)),
         "reporting_seed": REPORTING_SEED, "paired": True,
         "experiment": source["experiment"], "launch_overrides": source["launch_overrides"],
         "config_sha": config_sha(pol.ckpt["cfg"]), "checkpoint": str(ckpt_path),
@@ -107,7 +107,7 @@ def evaluate(cfg: DictConfig) -> dict:
         result["dirty_reason"] = cfg.dirty_reason
     comparison = None
     if cfg.compare is not None:  # a second policy on the same trials
-        other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, int(cfg.seed), **overrides)
+        other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, resolve_seed(cfg.seed), **overrides)
         other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample)
         other.env.close()
         comparison = paired_comparison(records, other_records)

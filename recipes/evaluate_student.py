@@ -24,7 +24,7 @@ from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.paired import comparison_md, paired_comparison
-from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
 from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.rollout import summarise
 from pnp.training.student import evaluate_views
@@ -51,7 +51,7 @@ def evaluate(cfg: DictConfig) -> dict:
     t0 = time.monotonic()
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    ecfg, ckpt, records = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), bool(cfg.progress),
+    ecfg, ckpt, records = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, resolve_seed(cfg.seed), bool(cfg.progress),
                                       cfg.noise_scale, cfg.dropout_p, **overrides)
     runs = {name: summarise(r) for name, r in records.items()}
     env, counters, student = ecfg.env, ckpt["counters"], runs["student"]
@@ -66,7 +66,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "completion_time_mean_s": student["completion_time_mean_s"],
         "completion_time_std_s": student["completion_time_std_s"], **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)), "reporting_seed": REPORTING_SEED,
+        "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)), "reporting_seed": REPORTING_SEED,
         "paired": True, "comparisons": comparisons, "experiment": source["experiment"],
         "launch_overrides": source["launch_overrides"], "config_sha": config_sha(ckpt["cfg"]),
         "trial_records": {n: [[x["trial"], int(x["success"]), x["steps"], x["cause"]] for x in r] for n, r in records.items()},

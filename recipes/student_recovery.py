@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.protocol import REPORTING_SEED, seed_role
+from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
 from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.recovery import CLEARANCE_M, evaluate_recovery
 
@@ -79,7 +79,7 @@ def evaluate(cfg: DictConfig) -> dict:
     dropout = OmegaConf.to_container(cfg.dropout)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    ecfg, ckpt, runs = evaluate_recovery(ckpt_path, int(cfg.trials), num_worlds, int(cfg.seed), displacement, dropout,
+    ecfg, ckpt, runs = evaluate_recovery(ckpt_path, int(cfg.trials), num_worlds, resolve_seed(cfg.seed), displacement, dropout,
                                          bool(cfg.progress), **overrides)
     env, counters = ecfg.env, ckpt["counters"]
     result = {
@@ -88,7 +88,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)), "trials": int(cfg.trials),
         "displacement_settings": displacement, "dropout_settings": dropout, **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": int(cfg.seed), "seed_role": seed_role(int(cfg.seed)), "reporting_seed": REPORTING_SEED,
+        "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)), "reporting_seed": REPORTING_SEED,
         # Layouts paired across policies; the displacement and noise draws are per run.
         "paired": True, "experiment": launch_source(ckpt.get("launches", []))["experiment"],
         "config_sha": config_sha(ckpt["cfg"]), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),

@@ -20,3 +20,13 @@ def seed_role(seed: int) -> str:
     if seed in SELECTION_SEEDS:
         return "selection"
     return "development" if seed == DEVELOPMENT_SEED else "other"
+
+
+def resolve_seed(seed) -> int:
+    """An evaluation's ``seed=``: an integer, or a role name (``reporting``, ``development``)."""
+    named = {"reporting": REPORTING_SEED, "development": DEVELOPMENT_SEED}
+    if isinstance(seed, str) and not seed.lstrip("-").isdigit():
+        if seed not in named:
+            raise ValueError(f"seed={seed!r}: an integer or one of {sorted(named)}")
+        return named[seed]
+    return int(seed)

@@ -7,9 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from omegaconf import OmegaConf
 
-from pnp.training.config import migrate
+from pnp.training.config import changed_settings, migrate
 from pnp.training.distill_config import distill_config, register
 from pnp.training.pipeline import phase_config
 from pnp.training.provenance import launch_source
@@ -21,20 +20,9 @@ QUOTED = yaml.safe_load((ROOT / "results" / "quoted.yaml").read_text())
 LOCATION = ("out_dir", "resume", "warm_start", "logger", "progress", "checkpoint_every_min", "runs_root")
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict) and v:
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def _differences(saved, composed) -> dict:
-    a, b = (_flat(OmegaConf.to_container(c, resolve=True)) for c in (saved, composed))
-    return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b))
-            if a.get(k) != b.get(k) and not k.startswith(LOCATION)}
+    diff = changed_settings(composed, saved, resumable=())
+    return {k: v for k, v in diff.items() if not k.startswith(LOCATION)}
 
 
 @pytest.mark.parametrize("name", sorted(QUOTED))

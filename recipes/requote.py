@@ -41,9 +41,11 @@ def requote(name: str) -> dict:
     t0 = time.monotonic()
     subprocess.run(cmd, cwd=ROOT, check=True)
     new = json.loads(out.read_text())
-    if new.get("experiment") not in (None, experiment.split(":")[-1]):
-        raise ValueError(f"{name}: the checkpoint's launch named experiment {new['experiment']!r}, the row {experiment!r}")
-    new["experiment"] = experiment  # distill:<name> is a distill_experiment
+    if new.get("experiment") not in (None, experiment.split(":")[-1]):  # renamed or merged since its launch
+        new["launched_experiment"] = new["experiment"]
+    # The experiment that composes to the checkpoint's configuration today (test_quoted_configs.py);
+    # distill:<name> is a distill_experiment.
+    new["experiment"] = experiment
     carried = {k: v for k, v in old.items() if k not in new and k != "previous_evaluation"}
     if "previous_evaluation" not in old and old:
         carried["previous_evaluation"] = {k: old.get(k) for k in HEADLINE}

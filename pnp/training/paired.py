@@ -15,6 +15,14 @@ from pnp.training.collect import seconds
 
 LEVEL = 0.95
 BOOTSTRAP = 10_000
+Z95 = 1.959964  # the normal quantile of a two-sided 95 % interval
+
+
+def wilson(p: float, n: int) -> tuple[float, float]:
+    """95 % Wilson score interval of a success share ``p`` over ``n`` trials."""
+    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
+    half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / (1 + Z95**2 / n)
+    return centre - half, centre + half
 
 
 def mcnemar_exact(only_a: int, only_b: int) -> float:

@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from pnp.training.paired import comparison_md, mcnemar_exact, paired_comparison
+from pnp.training.paired import comparison_md, mcnemar_exact, paired_comparison, wilson
 
 
 def _records(successes, steps=None):
@@ -40,3 +40,10 @@ def test_unpaired_records_are_refused():
     with pytest.raises(ValueError, match="'trial' index"):
         paired_comparison(a, [{k: v for k, v in r.items() if k != "trial"} for r in a])
     assert not math.isnan(paired_comparison(a, a)["success_diff"])
+
+
+def test_wilson_interval_matches_the_textbook_values():
+    lo, hi = wilson(0.5, 100)
+    assert (lo, hi) == (pytest.approx(0.4038, abs=1e-4), pytest.approx(0.5962, abs=1e-4))
+    lo, hi = wilson(1.0, 500)  # all successes: the interval stays below 1 and excludes nothing above
+    assert hi == pytest.approx(1.0) and 0.99 < lo < 1.0

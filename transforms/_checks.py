@@ -52,6 +52,23 @@ def _check_agent_shape(
     )
 
 
+def _check_group_batch(td: TensorDictBase, key: NestedKey, n_agents: int) -> None:
+    """The group holding per-robot entry ``key`` has batch ``[*B, A]``. A group created by
+    ``td.set(("agents", k), v)`` gets the root's ``[*B]``: every entry has the right shape,
+    and a collector stacking such tensordicts fails deep inside tensordict."""
+    if not isinstance(key, tuple) or len(key) < 2:
+        return
+    group = td.get(key[:-1], None)
+    expected = (*td.batch_size, n_agents)
+    if group is not None and tuple(group.batch_size) != expected:
+        raise ValueError(
+            f"the {_fmt(key[:-1])!r} group has batch {list(group.batch_size)}, expected {list(expected)} "
+            f"(env batch B = {list(td.batch_size)}, {n_agents} robots): build it as "
+            f"TensorDict({{...}}, batch_size={list(expected)}) and set it whole, "
+            f"td.set({key[:-1][0]!r}, group), not entry by entry with td.set(({key[0]!r}, name), value)"
+        )
+
+
 class _LazyBuffers:
     """Buffers sized at the first call (names in ``_lazy``, registered empty): a loaded
     state dict gives them its shapes before the copy, on this module's device."""

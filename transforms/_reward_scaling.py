@@ -27,7 +27,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ._checks import _check_agent_shape, _ClonesOwnBuffers, _check_exact, _check_names, _EnvOnly, _get, _LazyBuffers
+from ._checks import _check_agent_shape, _check_group_batch, _ClonesOwnBuffers, _check_exact, _check_names, _EnvOnly, _get, _LazyBuffers
 from ._stage import _ResetKeysMixin, _set_nested, _slot_reset_mask
 
 __all__ = [
@@ -330,7 +330,8 @@ class AdaptiveRewardScaling(_LazyBuffers, StageRewardSchedule):
         if not self.initialized:  # no step yet, so no episode has ended: only allocate
             stage = tensordict_reset.get(self.stage_key, None)
             if stage is not None:
-                _check_agent_shape(self.stage_key, stage.shape, tensordict_reset.batch_size, (1,))
+                n_agents = _check_agent_shape(self.stage_key, stage.shape, tensordict_reset.batch_size, (1,))
+                _check_group_batch(tensordict_reset, self.stage_key, n_agents)
                 self._before_reward(stage.reshape(stage.shape[:-1]))
             return tensordict_reset
         pending = self.pending_stage

@@ -19,7 +19,7 @@ from torchrl.envs.transforms.utils import _get_reset
 
 from pnp.stage_graph import StageGraph
 
-from ._checks import _check_agent_shape, _ClonesOwnBuffers, _EnvOnly, _get
+from ._checks import _check_agent_shape, _check_group_batch, _ClonesOwnBuffers, _EnvOnly, _fmt, _get
 
 __all__ = ["StageTransition"]
 
@@ -166,7 +166,8 @@ class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
         prev = tensordict.get(self.stage_key, None)
         cond = tensordict_reset.get(self.conditions_key, None)
         if cond is not None:
-            _check_agent_shape(self.conditions_key, cond.shape, tensordict_reset.batch_size, cond.shape[-1:])
+            n_agents = _check_agent_shape(self.conditions_key, cond.shape, tensordict_reset.batch_size, cond.shape[-1:])
+            _check_group_batch(tensordict_reset, self.conditions_key, n_agents)
         if prev is not None:
             _check_agent_shape(self.stage_key, prev.shape, tensordict.batch_size, (1,))
         like = cond if cond is not None else prev
@@ -175,6 +176,9 @@ class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
         else:
             slots, device = self._slot_shape_from_spec(tensordict_reset), tensordict_reset.device
         reset = _slot_reset_mask(tensordict, self.reset_keys, slots, device)
+        # A partial reset given the reset keys alone (TorchRL's own step_and_maybe_reset does so)
+        # writes zeros for the other slots too: TorchRL then merges the output into the carried
+        # tensordict by the mask, and pads every entry it lacks with 0 (docs/own_env.md).
         stage = torch.zeros(slots, dtype=torch.long, device=device)
         if prev is not None:
             stage = torch.where(reset, stage, prev.reshape(slots))
@@ -192,7 +196,15 @@ class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
                 f"cannot size the stage: neither {self.conditions_key!r} in the reset "
                 f"output nor {self.stage_key!r} in the input, and no parent env"
             )
-        return parent.full_observation_spec[self.conditions_key].shape[:-1]
+        spec = parent.full_observation_spec
+        if self.conditions_key not in spec.keys(True, True):
+            present = ", ".join(sorted(_fmt(k) for k in spec.keys(True, True)))
+            raise KeyError(
+                f"StageTransition reads {_fmt(self.conditions_key)} (bool [*B, A, C], a group of batch [*B, A]); "
+                f"the env's observation spec has: {present}. Emit the per-robot entries in that group "
+                f"(at reset too), or pass conditions_key= the key the env uses"
+            )
+        return spec[self.conditions_key].shape[:-1]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One env-free step: ``tensordict`` holds t and its ``"next"`` entry."""

@@ -1,6 +1,7 @@
 """The quoted evaluations as one Markdown table, read from results/quoted.yaml and the JSONs.
 
-    python recipes/results_table.py > results/quoted.md
+    python recipes/results_table.py                 # print it
+    python recipes/results_table.py RESULTS.md      # write it between the file's quoted markers
 
 Success with its 95 % Wilson interval over the trials, completion time (mean ± std over the
 successes), the figure the same checkpoint had before the evaluation protocol (development
@@ -27,7 +28,7 @@ def row(name: str, meta: dict) -> str:
     before = "-" if prev.get("success_rate") is None else f"{100 * prev['success_rate']:.1f} %"
     seed = f"{r['seed']}" + ("" if r.get("seed_role") == "reporting" else f" ({r.get('seed_role', 'unlabelled')})")
     return (f"| {meta['task']} | {meta['label']} | **{100 * r['success_rate']:.1f} %** ({100 * lo:.1f}-{100 * hi:.1f}) "
-            f"| {time_s} | {before} | {seed} | {meta['backing']} | [{name}.json]({name}.json) |")
+            f"| {time_s} | {before} | {seed} | {meta['backing']} | [{name}.json](results/{name}.json) |")
 
 
 def table() -> str:
@@ -37,5 +38,19 @@ def table() -> str:
     return "\n".join([head, *(row(n, m) for n, m in quoted.items())]) + "\n"
 
 
+BEGIN, END = "<!-- quoted:begin (recipes/results_table.py) -->", "<!-- quoted:end -->"
+
+
+def write_into(path: Path) -> None:
+    text = path.read_text()
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"{path} has no {BEGIN} ... {END} markers")
+    head, rest = text.split(BEGIN, 1)
+    path.write_text(head + BEGIN + "\n" + table() + rest[rest.index(END):])
+
+
 if __name__ == "__main__":
-    sys.stdout.write(table())
+    if len(sys.argv) > 1:
+        write_into(Path(sys.argv[1]))
+    else:
+        sys.stdout.write(table())

@@ -48,9 +48,9 @@ TRAIN = [
 ]
 
 
-def reach_layout(rng, m, num_robots, assets, tries=16, start_range=START_RANGE):
+def reach_layout(rng, m, num_robots, assets, tries=16, start_range=START_RANGE, box_mass=None):
     """The env's layout, with each robot moved behind the box's -x handle, facing along +y of the box."""
-    lay = sample_layout(rng, m, num_robots, assets, tries, start_range=start_range)
+    lay = sample_layout(rng, m, num_robots, assets, tries, start_range=start_range, box_mass=box_mass)
     xy, yaw = lay.box_xy_yaw[:, :2], lay.box_xy_yaw[:, 2]
     box_x = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
     box_y = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)

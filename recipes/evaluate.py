@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
@@ -26,6 +26,7 @@ from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
 from pnp.training.paired import comparison_md, paired_comparison
 from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
+from pnp.training.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacement, recovery_summary
 from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
@@ -61,6 +62,24 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
     return phases, Path(phases[-1]["checkpoint"])
 
 
+def displacement_settings(cfg: DictConfig) -> dict:
+    """``cfg.displacement`` with its clearance default filled in."""
+    settings = {"delay_s": DELAY_S, "distance": list(DISTANCE_M), "clearance": CLEARANCE_M}
+    unknown = set(cfg.displacement) - set(settings)
+    if unknown:
+        raise ValueError(f"displacement: unknown keys {sorted(unknown)}; known: {sorted(settings)}")
+    given = OmegaConf.to_container(cfg.displacement, resolve=True)
+    settings.update({k: v for k, v in given.items() if v is not None})
+    return settings
+
+
+def displacement_hook(cfg: DictConfig, num_worlds: int) -> BoxDisplacement | None:
+    """The box moved once per episode after its first lift (``pnp.training.recovery``); None: never."""
+    if cfg.displacement is None:
+        return None
+    return BoxDisplacement(num_worlds, resolve_seed(cfg.seed), **displacement_settings(cfg))
+
+
 def evaluate(cfg: DictConfig) -> dict:
     phases, ckpt_path = pipeline_phases(cfg)
     selection = Path(str(cfg.checkpoint)) / SELECTION if cfg.selected else None
@@ -74,7 +93,8 @@ def evaluate(cfg: DictConfig) -> dict:
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
     pol = load_policy(ckpt_path, num_worlds, resolve_seed(cfg.seed), **overrides)
-    records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample)
+    records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample,
+                         hook=displacement_hook(cfg, num_worlds))
     pol.env.close()
     env, counters, trained = pol.cfg.env, pol.ckpt["counters"], pol.cfg
     prov = provenance()
@@ -100,6 +120,9 @@ def evaluate(cfg: DictConfig) -> dict:
         "trial_records": [[r["trial"], int(r["success"]), r["steps"], r["cause"]] for r in records],
         **prov,
     }
+    if cfg.displacement is not None:  # the box moved once per episode: recovery figures beside the rest
+        result["displacement"] = {"settings": displacement_settings(cfg),
+                                  **{k: v for k, v in recovery_summary(records).items() if k != "records"}}
     if prov["commit"].endswith("-dirty"):
         if cfg.dirty_reason is None and Path(str(cfg.out or "")).parts[:1] == ("results",):
             raise ValueError(f"a figure for results/ from a dirty tree ({prov['commit']}): commit first, "
@@ -108,7 +131,8 @@ def evaluate(cfg: DictConfig) -> dict:
     comparison = None
     if cfg.compare is not None:  # a second policy on the same trials
         other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, resolve_seed(cfg.seed), **overrides)
-        other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample)
+        other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample,
+                                   hook=displacement_hook(cfg, num_worlds))
         other.env.close()
         comparison = paired_comparison(records, other_records)
         result["comparison"] = {"checkpoint_b": str(cfg.compare), **summarise(other_records), **comparison}

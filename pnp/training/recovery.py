@@ -41,6 +41,7 @@ DISTANCE_M = (0.5, 1.0)
 # Box footprint to base centre: the base footprint's half diagonal and 10 cm to spare.
 CLEARANCE_M = math.hypot(*FOOTPRINT_HALF) + 0.1
 TRIES = 32  # candidate offsets per displacement
+PAIRED_TAG = 1 << 40  # keeps the (seed, trial) streams apart from the (seed, world, episode) ones
 # The dropout comparison: teacher against student, both on noisy observations.
 DROPOUT_RUNS = {"student": "student", "teacher_noisy": "noisy"}
 
@@ -97,8 +98,13 @@ class BoxDisplacement:
         self.info: list[dict] = [{} for _ in range(n)]
         self.events: list[tuple[int, int, int]] = []
 
-    def _draws(self, world: int) -> torch.Tensor:
-        key = np.random.SeedSequence([self.seed, world, int(self.episode[world])]).generate_state(1)[0]
+    def _draws(self, env, world: int) -> torch.Tensor:
+        # Paired trials: the direction depends on (seed, trial) alone, as the layout does.
+        if getattr(env, "paired_trials", False):
+            entropy = [self.seed, PAIRED_TAG, int(env.trial[world])]
+        else:
+            entropy = [self.seed, world, int(self.episode[world])]
+        key = np.random.SeedSequence(entropy).generate_state(1)[0]
         return torch.rand(TRIES, 2, generator=torch.Generator().manual_seed(int(key)))
 
     def after_step(self, env: TransformedEnv, nxt: TensorDictBase) -> None:
@@ -123,7 +129,7 @@ class BoxDisplacement:
         s = env.physical_state()
         rot = s.box_rot[worlds]
         offsets, clear = choose_offsets(
-            torch.stack([self._draws(w) for w in worlds.tolist()]), s.box_pos[worlds, :2],
+            torch.stack([self._draws(env, w) for w in worlds.tolist()]), s.box_pos[worlds, :2],
             torch.atan2(rot[:, 1, 0], rot[:, 0, 0]), s.box_size[worlds, :2] * 0.5, s.base[worlds, :, :2],
             self.distance, self.clearance)
         env.displace_box(worlds, offsets)

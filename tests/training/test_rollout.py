@@ -122,3 +122,18 @@ def test_a_kinematic_run_with_options_is_evaluated_on_mujoco(tmp_path):
     tiny_train(tmp_path / "run", "total_iterations=1", "env.kinematic.slip=true", "env.kinematic.grasp_dist=0.02")
     pol = load_policy(tmp_path / "run" / "checkpoint.pt", 1, 0, backend="mujoco", nthread=1, max_episode_steps=2)
     assert not pol.env.base_env.backend.__class__.__name__.startswith("Kinematic")
+
+
+def test_evaluate_recipe_takes_the_box_displacement_as_a_condition(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    evaluate_recipe.evaluate(compose_cfg("evaluate", [
+        f"checkpoint={tmp_path / 'run'}", "trials=4", "env.num_worlds=4", "env.max_episode_steps=6",
+        f"out={tmp_path / 'eval.json'}", "progress=false", "displacement={delay_s: 0.0, distance: [0.5, 0.6]}",
+    ]))
+    saved = json.loads((tmp_path / "eval.json").read_text())["displacement"]
+    assert saved["settings"]["distance"] == [0.5, 0.6] and saved["settings"]["delay_s"] == 0.0
+    assert saved["trials"] == 4 and 0 <= saved["displaced"] <= 4 and "records" not in saved
+    with pytest.raises(ValueError, match=r"displacement: unknown keys \['angle'\]"):
+        evaluate_recipe.evaluate(compose_cfg("evaluate", [
+            f"checkpoint={tmp_path / 'run'}", "trials=2", "env.num_worlds=2", "env.max_episode_steps=4",
+            f"out={tmp_path / 'eval2.json'}", "progress=false", "displacement={angle: 1.0}"]))

@@ -242,10 +242,11 @@ class PnPEnv(RobotEnvBase):
         super()._set_seed(seed)
         self._trial_seed, self._next_trial = int(seed) if seed is not None else 0, 0
 
-    def _reset_worlds(self, ids: torch.Tensor):
+    def _reset_worlds(self, ids: torch.Tensor, next_trials: bool = True):
         if self.paired_trials:  # trials numbered in reset order; worlds in index order
-            self.trial[ids] = self._next_trial + torch.arange(len(ids))
-            self._next_trial += len(ids)
+            if next_trials:
+                self.trial[ids] = self._next_trial + torch.arange(len(ids))
+                self._next_trial += len(ids)
             layout = paired_layouts(self._trial_seed, self.trial[ids], self.num_robots, self.box_assets,
                                     start_range=self.start_range, box_mass=self.box_mass)
         else:
@@ -276,7 +277,7 @@ class PnPEnv(RobotEnvBase):
             # Reset the diverged worlds alone; the others carry on. They end as truncated.
             ids = diverged.nonzero().squeeze(-1)
             self.diverged_count += len(ids)
-            self._reset_worlds(ids)
+            self._reset_worlds(ids, next_trials=False)  # the episode ends here: its trial is spent
             action = torch.where(diverged[:, None, None], self._last_action, action)
             command = torch.where(diverged[:, None, None], self._last_action, command)
             command[..., 7] = (command[..., 7] > 0.5).float()

@@ -88,3 +88,22 @@ def test_box_mass_is_an_evaluation_condition_on_the_same_trials():
     env.close()
     with pytest.raises(ValueError, match=r"box_mass .* got \[0.0, 1.0\]"):
         paired_layouts(3, torch.arange(1), 1, SINGLE_ROBOT_BOXES, box_mass=(0.0, 1.0))
+
+
+@pytest.mark.timeout(120)  # before the fix the trial a divergence skipped was waited for forever
+def test_a_diverged_episode_spends_its_trial_and_the_trials_still_complete():
+    cfg = compose_cfg("train", ["backend=kinematic", "env.num_worlds=3", "env.terminate_on_success=true",
+                                "env.paired_trials=true", "env.max_episode_steps=5"])
+    env = make_env(cfg.env, cfg.curriculum, seed=5)
+    backend, calls = env.base_env.backend, {"n": 0}
+    step = backend.step
+
+    def diverge_once(command):  # world 1 diverges at the 3rd step, as MuJoCo's instability reset would
+        out = step(command)
+        calls["n"] += 1
+        return out | (torch.arange(3) == 1) if calls["n"] == 3 else out
+
+    backend.step = diverge_once
+    records = run_trials(env, lambda td: td.set(("agents", "action"), torch.zeros(3, 1, 8)), trials=7)
+    assert [r["trial"] for r in records] == list(range(7))
+    assert sum(r["cause"] == "diverged" for r in records) == 1

@@ -30,6 +30,7 @@ from pnp.training.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacem
 from pnp.training.provenance import config_sha, launch_source, provenance, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
+from pnp.training.student import add_observation_noise
 
 
 def table_md(result: dict, method: str) -> str:
@@ -60,6 +61,14 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
                          f"(finished: {names}; a pipeline folder is needed)")
     phases = phases[: names.index(cfg.phase) + 1]
     return phases, Path(phases[-1]["checkpoint"])
+
+
+def observation_noise(cfg: DictConfig, env) -> dict | None:
+    """The student's noise model on the policy's own observation when ``noise_scale`` or
+    ``dropout_p`` is set (``pnp.training.student.add_observation_noise``); None: clean."""
+    if cfg.noise_scale is None and cfg.dropout_p is None:
+        return None
+    return add_observation_noise(env, resolve_seed(cfg.seed), cfg.noise_scale, cfg.dropout_p)
 
 
 def displacement_settings(cfg: DictConfig) -> dict:
@@ -93,6 +102,7 @@ def evaluate(cfg: DictConfig) -> dict:
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
     pol = load_policy(ckpt_path, num_worlds, resolve_seed(cfg.seed), **overrides)
+    noise = observation_noise(cfg, pol.env)
     records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample,
                          hook=displacement_hook(cfg, num_worlds))
     pol.env.close()
@@ -114,7 +124,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "training_launches": pol.ckpt.get("launches", []),
         "folded_inputs": pol.folded, "sampled_actions": list(sample),
         "schedule": trained.curriculum.schedule if trained.curriculum.stage_rewards else "none", "train_seed": int(trained.seed),
-        "low_level": env.low_level,
+        "low_level": env.low_level, "observation_noise": noise,
         "low_level_checkpoint": str(resolve_checkpoint(env.low_level_checkpoint, cfg.runs_root)) if env.low_level == "learned" else None,
         # Per trial (trial, success, steps, cause): any later evaluation on this seed pairs with it.
         "trial_records": [[r["trial"], int(r["success"]), r["steps"], r["cause"]] for r in records],
@@ -131,6 +141,7 @@ def evaluate(cfg: DictConfig) -> dict:
     comparison = None
     if cfg.compare is not None:  # a second policy on the same trials
         other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, resolve_seed(cfg.seed), **overrides)
+        observation_noise(cfg, other.env)
         other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample,
                                    hook=displacement_hook(cfg, num_worlds))
         other.env.close()

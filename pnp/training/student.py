@@ -25,7 +25,7 @@ from pnp.task import HL_DT
 from pnp.task_observations import OBS_BLOCKS, OBS_FIELDS
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint, seed_everything
 from pnp.training.config import migrate
-from pnp.training.distill_config import distill_config
+from pnp.training.distill_config import NoiseConfig, distill_config
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import AgentNet, ObsNorm, PopArt, fold_constant_inputs, make_models
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, STEP_COUNT, RecurrentStudentNet
@@ -104,6 +104,21 @@ def observation_transforms(cfg: DictConfig, view: str, seed: int) -> list[Transf
     if view == "clean":
         return []
     raise ValueError(f"view must be one of {VIEWS}, got {view!r}")
+
+
+def add_observation_noise(env: TransformedEnv, seed: int, scale: float | None = None,
+                          dropout_p: float | None = None) -> dict:
+    """The student's noise model (the schema's, with ``scale`` and ``dropout_p`` replaced where
+    given) on ``env``'s own observation, in place, before its reward schedule: a teacher
+    evaluated under the student's conditions. Returns the noise model used."""
+    noise = OmegaConf.structured(NoiseConfig)
+    if scale is not None:
+        noise.scale = float(scale)
+    if dropout_p is not None:
+        noise.dropout.p = float(dropout_p)
+    for t in noise_transforms(noise, OBS, OBS, seed, int(env.base_env.num_robots)):
+        env.insert_transform(len(env.transform) - 1, t)
+    return OmegaConf.to_container(noise)
 
 
 def make_student_env(cfg: DictConfig, seed: int, view: str = "student") -> TransformedEnv:

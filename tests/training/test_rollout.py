@@ -13,6 +13,7 @@ from pnp.scripted import ScriptedPnP
 from pnp.terms import CONDITIONS, REWARD_TERMS
 from pnp.training.keys import ACTION
 from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
+from pnp.training.student import add_observation_noise
 from pnp.training.tasks import make_env
 from tests.training._tiny import ROOT, compose_cfg, tiny_train
 
@@ -137,3 +138,21 @@ def test_evaluate_recipe_takes_the_box_displacement_as_a_condition(tmp_path):
         evaluate_recipe.evaluate(compose_cfg("evaluate", [
             f"checkpoint={tmp_path / 'run'}", "trials=2", "env.num_worlds=2", "env.max_episode_steps=4",
             f"out={tmp_path / 'eval2.json'}", "progress=false", "displacement={angle: 1.0}"]))
+
+
+def test_evaluate_recipe_puts_the_students_noise_on_a_teacher(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=1")
+    args = [f"checkpoint={tmp_path / 'run'}", "trials=4", "env.num_worlds=4", "env.max_episode_steps=6",
+            f"out={tmp_path / 'eval.json'}", "progress=false"]
+    evaluate_recipe.evaluate(compose_cfg("evaluate", [*args, "dropout_p=0.5"]))
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    assert saved["observation_noise"]["dropout"]["p"] == 0.5 and saved["observation_noise"]["scale"] > 0
+    evaluate_recipe.evaluate(compose_cfg("evaluate", args))
+    assert json.loads((tmp_path / "eval.json").read_text())["observation_noise"] is None
+    with pytest.raises(ValueError, match="noise.scale=-1.0"):
+        evaluate_recipe.evaluate(compose_cfg("evaluate", [*args, "noise_scale=-1"]))
+    # The noise reaches what the policy reads: the same paired trial, another observation.
+    pol = load_policy(tmp_path / "run" / "checkpoint.pt", 2, seed=0)
+    clean = pol.env.reset()["agents", "observation"]
+    add_observation_noise(pol.env, 0, scale=1.0, dropout_p=0.0)
+    assert not torch.allclose(pol.env.reset()["agents", "observation"], clean)

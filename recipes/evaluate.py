@@ -24,10 +24,10 @@ from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
-from pnp.training.paired import comparison_md, paired_comparison
-from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
+from pnp.training.paired import comparison_md, paired_comparison, trial_table
+from pnp.training.protocol import resolve_seed
 from pnp.training.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacement, recovery_summary
-from pnp.training.provenance import config_sha, launch_source, provenance, write_result
+from pnp.training.provenance import check_clean, evaluation_record, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
 from pnp.training.student import add_observation_noise
@@ -97,26 +97,23 @@ def evaluate(cfg: DictConfig) -> dict:
             raise ValueError(f"selected=true judges the selection's choice; phase={cfg.phase!r} names another checkpoint")
         ckpt_path = selected_checkpoint(selection.parent)
     ckpt_path = ckpt_path or resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
+    check_clean(cfg.out, cfg.dirty_reason)
     t0 = time.monotonic()
     sample = check_groups(cfg.sample)
+    seed = resolve_seed(cfg.seed)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    pol = load_policy(ckpt_path, num_worlds, resolve_seed(cfg.seed), **overrides)
+    pol = load_policy(ckpt_path, num_worlds, seed, **overrides)
     noise = observation_noise(cfg, pol.env)
     records = run_trials(pol.env, pol.actor, int(cfg.trials), bool(cfg.progress), sample,
                          hook=displacement_hook(cfg, num_worlds))
     pol.env.close()
     env, counters, trained = pol.cfg.env, pol.ckpt["counters"], pol.cfg
-    prov = provenance()
-    source = launch_source(pol.ckpt.get("launches", []))
     result = {
         "backend": env.backend, "num_robots": int(env.num_robots), "num_worlds": int(env.num_worlds),
         "start_range_m": [float(x) for x in env.start_range],
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)),
-        **summarise(records), "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)),
-        "reporting_seed": REPORTING_SEED, "paired": True,
-        "experiment": source["experiment"], "launch_overrides": source["launch_overrides"],
-        "config_sha": config_sha(pol.ckpt["cfg"]), "checkpoint": str(ckpt_path),
+        **summarise(records), "checkpoint": str(ckpt_path),
         "checkpoint_iteration": int(counters["iteration"]), "checkpoint_frames": int(counters["frames"]),
         # This run's training (a warm-started run's source trained before: see warm_started_from).
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
@@ -127,20 +124,14 @@ def evaluate(cfg: DictConfig) -> dict:
         "low_level": env.low_level, "observation_noise": noise,
         "low_level_checkpoint": str(resolve_checkpoint(env.low_level_checkpoint, cfg.runs_root)) if env.low_level == "learned" else None,
         # Per trial (trial, success, steps, cause): any later evaluation on this seed pairs with it.
-        "trial_records": [[r["trial"], int(r["success"]), r["steps"], r["cause"]] for r in records],
-        **prov,
+        "trial_records": trial_table(records), **evaluation_record(pol.ckpt, seed, cfg.dirty_reason),
     }
     if cfg.displacement is not None:  # the box moved once per episode: recovery figures beside the rest
         result["displacement"] = {"settings": displacement_settings(cfg),
                                   **{k: v for k, v in recovery_summary(records).items() if k != "records"}}
-    if prov["commit"].endswith("-dirty"):
-        if cfg.dirty_reason is None and Path(str(cfg.out or "")).parts[:1] == ("results",):
-            raise ValueError(f"a figure for results/ from a dirty tree ({prov['commit']}): commit first, "
-                             "or say why with dirty_reason=...")
-        result["dirty_reason"] = cfg.dirty_reason
     comparison = None
     if cfg.compare is not None:  # a second policy on the same trials
-        other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, resolve_seed(cfg.seed), **overrides)
+        other = load_policy(resolve_checkpoint(cfg.compare, cfg.runs_root), num_worlds, seed, **overrides)
         observation_noise(cfg, other.env)
         other_records = run_trials(other.env, other.actor, int(cfg.trials), bool(cfg.progress), sample,
                                    hook=displacement_hook(cfg, num_worlds))

@@ -23,9 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.paired import comparison_md, paired_comparison
-from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
-from pnp.training.provenance import config_sha, launch_source, provenance, write_result
+from pnp.training.paired import comparison_md, paired_comparison, trial_table
+from pnp.training.protocol import resolve_seed
+from pnp.training.provenance import check_clean, evaluation_record, write_result
 from pnp.training.rollout import summarise
 from pnp.training.student import evaluate_views
 
@@ -48,14 +48,14 @@ def table_md(result: dict) -> str:
 
 def evaluate(cfg: DictConfig) -> dict:
     ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
-    t0 = time.monotonic()
+    check_clean(cfg.out, cfg.dirty_reason)
+    t0, seed = time.monotonic(), resolve_seed(cfg.seed)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    ecfg, ckpt, records = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, resolve_seed(cfg.seed), bool(cfg.progress),
+    ecfg, ckpt, records = evaluate_views(ckpt_path, int(cfg.trials), num_worlds, seed, bool(cfg.progress),
                                       cfg.noise_scale, cfg.dropout_p, **overrides)
     runs = {name: summarise(r) for name, r in records.items()}
     env, counters, student = ecfg.env, ckpt["counters"], runs["student"]
-    prov, source = provenance(), launch_source(ckpt.get("launches", []))
     # Same layouts for all three (paired trials); the observation noise is drawn per run.
     comparisons = {f"student_vs_{t}": paired_comparison(records["student"], records[t]) for t in ("teacher_noisy", "teacher_clean")}
     result = {
@@ -66,22 +66,14 @@ def evaluate(cfg: DictConfig) -> dict:
         "completion_time_mean_s": student["completion_time_mean_s"],
         "completion_time_std_s": student["completion_time_std_s"], **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)), "reporting_seed": REPORTING_SEED,
-        "paired": True, "comparisons": comparisons, "experiment": source["experiment"],
-        "launch_overrides": source["launch_overrides"], "config_sha": config_sha(ckpt["cfg"]),
-        "trial_records": {n: [[x["trial"], int(x["success"]), x["steps"], x["cause"]] for x in r] for n, r in records.items()},
+        "comparisons": comparisons, "trial_records": {n: trial_table(r) for n, r in records.items()},
         "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
         "env_steps": int(counters["frames"]), "train_wall_s": float(counters["wall_s"]),
         "teacher": str(ecfg.distill.teacher), "beta": float(ecfg.distill.beta),
         "direction": str(ecfg.distill.direction), "trained_backend": ckpt["cfg"]["env"]["backend"],
         "training_launches": ckpt.get("launches", []),
-        "wall_s": time.monotonic() - t0, **prov,
+        "wall_s": time.monotonic() - t0, **evaluation_record(ckpt, seed, cfg.dirty_reason),
     }
-    if prov["commit"].endswith("-dirty"):
-        if cfg.dirty_reason is None and Path(str(cfg.out or "")).parts[:1] == ("results",):
-            raise ValueError(f"a figure for results/ from a dirty tree ({prov['commit']}): commit first, "
-                             "or say why with dirty_reason=...")
-        result["dirty_reason"] = cfg.dirty_reason
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_student_{env.backend}.json"
     markdown = table_md(result) + "".join(
         "\n" + comparison_md(c, "student", k.split("_vs_")[1]) for k, c in comparisons.items())

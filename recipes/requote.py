@@ -31,6 +31,22 @@ HEADLINE = ("seed", "trials", "success_rate", "completion_time_mean_s", "complet
             "commit", "date_utc", "command", "num_worlds")
 
 
+UNRECORDED = "not recorded when written (before the evaluation protocol of 2026-12-03)"
+
+
+def label_dirty(doc: dict) -> dict:
+    """Give every ``-dirty`` commit the document carries over (its former figure, its training
+    launches) a ``dirty_reason``: what the file says about it, else that nobody recorded one."""
+    prev = doc.get("previous_evaluation") or {}
+    if str(prev.get("commit", "")).endswith("-dirty") and "dirty_reason" not in prev:
+        prev["dirty_reason"] = UNRECORDED
+    note = doc.get("launch_note")
+    for launch in doc.get("training_launches", []):
+        if str(launch.get("commit", "")).endswith("-dirty") and "dirty_reason" not in launch:
+            launch["dirty_reason"] = f"{UNRECORDED}; the result's launch_note: {note}" if note else UNRECORDED
+    return doc
+
+
 def requote(name: str) -> dict:
     row = ROWS[name]
     recipe, checkpoint, experiment, extra = row["recipe"], row["checkpoint"], row["experiment"], row.get("overrides", [])
@@ -49,9 +65,12 @@ def requote(name: str) -> dict:
     carried = {k: v for k, v in old.items() if k not in new and k != "previous_evaluation"}
     if "previous_evaluation" not in old and old:
         carried["previous_evaluation"] = {k: old.get(k) for k in HEADLINE}
+        if "dirty_reason" in old:
+            carried["previous_evaluation"]["dirty_reason"] = old["dirty_reason"]
     else:
         carried["previous_evaluation"] = old.get("previous_evaluation")
     new.update(carried)
+    label_dirty(new)
     out.write_text(json.dumps(new, indent=2) + "\n")
     print(f"{name}: {100 * new['success_rate']:.1f} % (was {100 * old.get('success_rate', float('nan')):.1f} % "
           f"on seed {old.get('seed')}), {time.monotonic() - t0:.0f} s", flush=True)

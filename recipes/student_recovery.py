@@ -29,8 +29,8 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.protocol import REPORTING_SEED, resolve_seed, seed_role
-from pnp.training.provenance import config_sha, launch_source, provenance, write_result
+from pnp.training.protocol import resolve_seed
+from pnp.training.provenance import check_clean, evaluation_record, write_result
 from pnp.training.recovery import CLEARANCE_M, evaluate_recovery
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
@@ -72,14 +72,15 @@ def table_md(result: dict) -> str:
 
 def evaluate(cfg: DictConfig) -> dict:
     ckpt_path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
-    t0 = time.monotonic()
+    check_clean(cfg.out, cfg.dirty_reason)
+    t0, seed = time.monotonic(), resolve_seed(cfg.seed)
     displacement = OmegaConf.to_container(cfg.displacement)
     if displacement["clearance"] is None:
         displacement["clearance"] = CLEARANCE_M
     dropout = OmegaConf.to_container(cfg.dropout)
     overrides = {k: v for k, v in cfg.env.items() if k != "num_worlds"}
     num_worlds = min(int(cfg.env.num_worlds), int(cfg.trials))
-    ecfg, ckpt, runs = evaluate_recovery(ckpt_path, int(cfg.trials), num_worlds, resolve_seed(cfg.seed), displacement, dropout,
+    ecfg, ckpt, runs = evaluate_recovery(ckpt_path, int(cfg.trials), num_worlds, seed, displacement, dropout,
                                          bool(cfg.progress), **overrides)
     env, counters = ecfg.env, ckpt["counters"]
     result = {
@@ -88,13 +89,11 @@ def evaluate(cfg: DictConfig) -> dict:
         "max_episode_s": seconds(env.max_episode_steps or round(EPISODE_S / HL_DT)), "trials": int(cfg.trials),
         "displacement_settings": displacement, "dropout_settings": dropout, **runs,
         "noise": OmegaConf.to_container(ecfg.noise), "student_observation": OmegaConf.to_container(ecfg.student),
-        "seed": resolve_seed(cfg.seed), "seed_role": seed_role(resolve_seed(cfg.seed)), "reporting_seed": REPORTING_SEED,
-        # Layouts paired across policies; the displacement and noise draws are per run.
-        "paired": True, "experiment": launch_source(ckpt.get("launches", []))["experiment"],
-        "config_sha": config_sha(ckpt["cfg"]), "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
+        # Layouts and displacement directions paired across policies; the noise is drawn per run.
+        "checkpoint": str(ckpt_path), "checkpoint_iteration": int(counters["iteration"]),
         "env_steps": int(counters["frames"]), "teacher": str(ecfg.distill.teacher),
         "trained_backend": ckpt["cfg"]["env"]["backend"], "training_launches": ckpt.get("launches", []),
-        "wall_s": time.monotonic() - t0, **provenance(),
+        "wall_s": time.monotonic() - t0, **evaluation_record(ckpt, seed, cfg.dirty_reason),
     }
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"student_recovery_{env.backend}.json"
     return write_result(result, out, table_md(result))

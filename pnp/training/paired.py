@@ -25,6 +25,12 @@ def wilson(p: float, n: int) -> tuple[float, float]:
     return centre - half, centre + half
 
 
+def trial_table(records: list[dict]) -> list[list]:
+    """``[trial, success, steps, cause]`` per trial: what a later evaluation on the same seed
+    needs to pair with this one without re-running it."""
+    return [[r["trial"], int(r["success"]), r["steps"], r["cause"]] for r in records]
+
+
 def mcnemar_exact(only_a: int, only_b: int) -> float:
     """Two-sided exact p-value from the discordant counts (a succeeded alone, b alone)."""
     n = only_a + only_b

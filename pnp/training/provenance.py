@@ -21,18 +21,25 @@ def _counts_as_dirty(porcelain_line: str) -> bool:
     return not (path.startswith("results/") and path.endswith(_OUTPUT_SUFFIXES))
 
 
-def commit() -> str:
+def _tree() -> tuple[str, list[str]]:
+    """The short commit and the tracked files changed since (written figures in results/ aside)."""
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout
-        return out.stdout.strip() + ("-dirty" if any(_counts_as_dirty(x) for x in dirty.splitlines()) else "")
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout
+        return out.stdout.strip(), [x[3:].strip() for x in status.splitlines() if _counts_as_dirty(x)]
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return "unknown", []
+
+
+def commit() -> str:
+    head, changed = _tree()
+    return head + ("-dirty" if changed else "")
 
 
 # The tree the process started from: a script that writes over a tracked file in results/
 # (a re-rendered GIF) would otherwise call its own output a dirty tree.
-_COMMIT_AT_START = commit()
+_HEAD_AT_START, _CHANGED_AT_START = _tree()
+_COMMIT_AT_START = _HEAD_AT_START + ("-dirty" if _CHANGED_AT_START else "")
 
 
 def machine() -> str:
@@ -47,13 +54,46 @@ def machine() -> str:
 
 
 def provenance(**extra) -> dict:
-    return {
+    """Command, commit (``-dirty`` with uncommitted code, and then ``dirty_files``), machine, date."""
+    record = {
         "command": " ".join([os.path.relpath(sys.executable) if "venv" in sys.executable else "python", *sys.argv]),
         "commit": _COMMIT_AT_START,
         "machine": machine(),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        **extra,
     }
+    if _CHANGED_AT_START:
+        record["dirty_files"] = list(_CHANGED_AT_START)
+    return {**record, **extra}
+
+
+def launch_record() -> dict:
+    """A training launch's provenance; from a dirty tree it says which files were uncommitted."""
+    record = provenance()
+    if "dirty_files" in record:
+        record["dirty_reason"] = "launched with uncommitted changes to " + ", ".join(record["dirty_files"])
+    return record
+
+
+def check_clean(out, dirty_reason: str | None) -> None:
+    """Refuse to write a figure into results/ from a tree with uncommitted code or checkpoints,
+    unless ``dirty_reason`` says why; called before the work, not after it."""
+    if _CHANGED_AT_START and dirty_reason is None and Path(str(out or "")).parts[:1] == ("results",):
+        raise ValueError(f"a figure for results/ from a dirty tree ({_COMMIT_AT_START}: "
+                         f"{', '.join(_CHANGED_AT_START)}): commit first, or say why with dirty_reason=...")
+
+
+def evaluation_record(ckpt: dict, seed: int, dirty_reason: str | None) -> dict:
+    """What every evaluation result records beside its figures: the seed and its role, the
+    pairing, the experiment and configuration hash of the checkpoint, and the provenance."""
+    from pnp.training.protocol import REPORTING_SEED, seed_role
+
+    source = launch_source(ckpt.get("launches", []))
+    record = {"seed": seed, "seed_role": seed_role(seed), "reporting_seed": REPORTING_SEED, "paired": True,
+              "experiment": source["experiment"], "launch_overrides": source["launch_overrides"],
+              "config_sha": config_sha(ckpt["cfg"]), **provenance()}
+    if _CHANGED_AT_START:
+        record["dirty_reason"] = dirty_reason
+    return record
 
 
 def write_result(result: dict, out, markdown: str) -> dict:

@@ -35,7 +35,7 @@ from pnp.training.keys import (
 )
 from pnp.training.models import fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
-from pnp.training.provenance import provenance
+from pnp.training.provenance import launch_record
 from pnp.training.ppo import ppo_update
 from pnp.training.sequential import SequentialSchedule
 from pnp.training.start_curriculum import StartCurriculum
@@ -88,7 +88,7 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
 def launches(ckpt: dict | None) -> list[dict]:
     """Every start and resume of a run (command, commit, machine, date): a run that crosses
     sessions may cross machines too, and the same seed differs between CPUs."""
-    return [*((ckpt or {}).get("launches", [])), provenance()]
+    return [*((ckpt or {}).get("launches", [])), launch_record()]
 
 
 def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None, default_name: str | None = None) -> Logger:

@@ -42,3 +42,29 @@ def test_rewritten_figures_in_results_are_not_a_dirty_tree_but_code_and_checkpoi
     assert not state("results/eval.json").endswith("-dirty")
     assert state("results/ckpt.pt").endswith("-dirty")
     assert state("code.py").endswith("-dirty")
+
+
+def test_a_dirty_tree_names_its_files_and_results_need_a_reason(tmp_path):
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "code.py").write_text("x = 1")
+    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    (tmp_path / "code.py").write_text("x = 2")
+    script = """
+import sys; sys.path.insert(0, sys.argv[1])
+from pnp.training.provenance import check_clean, launch_record
+record = launch_record()
+assert record["commit"].endswith("-dirty") and record["dirty_files"] == ["code.py"], record
+assert record["dirty_reason"] == "launched with uncommitted changes to code.py", record
+check_clean("runs/eval.json", None)  # exploration may come from a dirty tree
+check_clean("results/eval.json", "a reason")
+try:
+    check_clean("results/eval.json", None)
+except ValueError as e:
+    assert "code.py" in str(e) and "dirty_reason=" in str(e), e
+    print("refused")
+"""
+    out = subprocess.run([sys.executable, "-c", script, str(ROOT)], cwd=tmp_path, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "refused"

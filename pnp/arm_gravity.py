@@ -13,51 +13,53 @@ take none of a vertical force).
 The torque at joint k holds the compensated bodies below it against gravity:
 ``tau_k = a_k . sum_j (c_j - p_k) x (m_j |g| e_up)``, with ``a_k``, ``p_k`` the joint's axis and
 anchor and ``c_j``, ``m_j`` a body's centre of mass and mass, computed in the trunk frame from
-the arm and finger joint angles and the trunk's orientation. Batched, numpy, float64.
+the arm and finger joint angles and the trunk's orientation. Since every force points the same
+way, the sum is ``tau_k = |g| a_k . ((S_k - M_k p_k) x up)`` with ``S_k`` the mass-weighted sum of
+the centres below joint k and ``M_k`` their mass. Batched torch, float64: it runs once per
+low-level tick in the env step.
 """
 from __future__ import annotations
 
 import mujoco
 import numpy as np
+import torch
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
+def _quat_matrix(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [..., 3, 3] of unit quaternions [..., 4] (w, x, y, z)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
     ], -2)
 
 
-def _axis_rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotations [..., 3, 3] by ``angle`` [...] about the unit ``axis`` [3]."""
-    half = angle[..., None] / 2
-    return _quat_matrix(np.concatenate([np.cos(half), np.sin(half) * axis], -1))
+def _skew(a: torch.Tensor) -> torch.Tensor:
+    x, y, z = a.tolist()
+    return torch.tensor([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]], dtype=torch.float64)
 
 
 class ArmGravity:
     """Feed-forward torques for the arm joints of robot ``prefix`` (``"robot0/"``) in ``model``.
 
     ``bodies`` are the compensated bodies (the rigid robot's ``gravcomp`` set); every body of
-    the arm's subtree takes part in the kinematics. ``torques(qpos)`` maps qpos [M, nq] (or
-    [M, R, ...] via ``qpos`` per robot) to [M, 6]."""
+    the arm's subtree takes part in the kinematics. ``torques(qpos)``: qpos [M, nq] -> [M, 6]."""
 
     def __init__(self, model: mujoco.MjModel, prefix: str, base_qpos: int, bodies: tuple[str, ...],
                  joints: tuple[str, ...]):
         root = model.body(f"{prefix}{bodies[0]}").id
         chain = [b for b in range(model.nbody) if self._descends(model, b, root)]
-        self._bodies = chain
-        self._parent = [chain.index(model.body_parentid[b]) if b != root else -1 for b in chain]
-        self._pos = model.body_pos[chain].copy()
-        self._rot = _quat_matrix(model.body_quat[chain].copy())
-        self._ipos = model.body_ipos[chain].copy()
         names = {f"{prefix}{n}" for n in bodies}
-        self._mass = np.array([model.body_mass[b] if model.body(b).name in names else 0.0 for b in chain])
         if not names <= {model.body(b).name for b in chain}:
             raise ValueError(f"compensated bodies {sorted(names)} are not all in the arm's subtree")
-        self._joint = []  # per body: (qposadr, type, axis, anchor) or None
+        f64 = dict(dtype=torch.float64)
+        self._parent = [chain.index(model.body_parentid[b]) if b != root else -1 for b in chain]
+        self._pos = torch.tensor(model.body_pos[chain], **f64)
+        self._rot = _quat_matrix(torch.tensor(model.body_quat[chain], **f64))
+        self._ipos = torch.tensor(model.body_ipos[chain], **f64)
+        mass = torch.tensor([model.body_mass[b] if model.body(b).name in names else 0.0 for b in chain], **f64)
+        self._joint = []  # per body: (qposadr, "hinge" (K, K^2, anchor) | "slide" axis) or None
         for b in chain:
             jn = model.body_jntnum[b]
             if jn > 1:
@@ -66,10 +68,21 @@ class ArmGravity:
                 self._joint.append(None)
                 continue
             j = model.body_jntadr[b]
-            self._joint.append((int(model.jnt_qposadr[j]), int(model.jnt_type[j]), model.jnt_axis[j].copy(),
-                                model.jnt_pos[j].copy()))
+            axis, adr = torch.tensor(model.jnt_axis[j], **f64), int(model.jnt_qposadr[j])
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                K = _skew(axis)
+                self._joint.append((adr, "hinge", (K, K @ K, torch.tensor(model.jnt_pos[j], **f64))))
+            elif model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE:
+                self._joint.append((adr, "slide", axis))
+            else:
+                raise ValueError(f"joint type {model.jnt_type[j]} in the arm chain: only hinges and slides are supported")
         self._arm = [chain.index(model.jnt_bodyid[model.joint(f"{prefix}{n}").id]) for n in joints]
-        self._below = [[j for j in range(len(chain)) if self._in_subtree(j, k)] for k in self._arm]
+        # Per arm joint: which bodies hang below it (as weights), their mass, its axis and anchor.
+        below = torch.tensor([[float(self._in_subtree(j, k)) for j in range(len(chain))] for k in self._arm], **f64)
+        self._weights = below * mass  # [J, B]: S_k = weights @ centres
+        self._subtree_mass = self._weights.sum(1)  # [J]
+        self._axes = torch.stack([torch.tensor(model.jnt_axis[model.body_jntadr[chain[k]]], **f64) for k in self._arm])
+        self._anchors = torch.stack([self._joint[k][2][2] for k in self._arm])
         self._base_qpos = base_qpos
         self._g = float(np.linalg.norm(model.opt.gravity))
 
@@ -81,43 +94,43 @@ class ArmGravity:
             body = model.body_parentid[body]
         return False
 
-    def torques(self, qpos: np.ndarray) -> np.ndarray:
-        """Joint torques [M, 6] holding the compensated bodies, for worlds' ``qpos`` [M, nq]."""
-        M = qpos.shape[0]
-        up = _quat_matrix(qpos[:, self._base_qpos + 3 : self._base_qpos + 7]).swapaxes(-1, -2)[..., 2]  # world z in trunk
-        rots, origins, coms = [], [], []
-        for k, parent in enumerate(self._parent):
-            R_p = np.broadcast_to(np.eye(3), (M, 3, 3)) if parent < 0 else rots[parent]
-            p_p = np.zeros((M, 3)) if parent < 0 else origins[parent]
-            R = R_p @ self._rot[k]
-            p = p_p + R_p @ self._pos[k]
-            joint = self._joint[k]
-            if joint is not None:
-                adr, typ, axis, anchor = joint
-                if typ == mujoco.mjtJoint.mjJNT_HINGE:
-                    R_j = R @ _axis_rotation(axis, qpos[:, adr])
-                    p = p + (R - R_j) @ anchor  # rotation about the anchor, not the body origin
-                    R = R_j
-                elif typ == mujoco.mjtJoint.mjJNT_SLIDE:
-                    p = p + (R @ axis) * qpos[:, adr, None]
-                else:
-                    raise ValueError(f"joint type {typ} in the arm chain: only hinges and slides are supported")
-            rots.append(R)
-            origins.append(p)
-            coms.append(p + R @ self._ipos[k])
-        coms = np.stack(coms, 1)  # [M, B, 3]
-        lift = self._mass[None, :, None] * self._g * up[:, None, :]  # [M, B, 3] upward force per body
-        out = np.empty((M, len(self._arm)))
-        for i, (k, below) in enumerate(zip(self._arm, self._below)):
-            _, _, axis, anchor = self._joint[k]
-            p_k = origins[k] + rots[k] @ anchor
-            moment = np.cross(coms[:, below] - p_k[:, None], lift[:, below]).sum(1)
-            out[:, i] = np.einsum("mi,mi->m", moment, rots[k] @ axis)
-        return out
-
     def _in_subtree(self, j: int, k: int) -> bool:
         while j >= 0:
             if j == k:
                 return True
             j = self._parent[j]
         return False
+
+    @torch.no_grad()
+    def torques(self, qpos: np.ndarray) -> np.ndarray:
+        """Joint torques [M, 6] holding the compensated bodies, for worlds' ``qpos`` [M, nq]."""
+        q = torch.from_numpy(np.asarray(qpos, dtype=np.float64))
+        M, eye = q.shape[0], torch.eye(3, dtype=torch.float64)
+        up = _quat_matrix(q[:, self._base_qpos + 3 : self._base_qpos + 7])[:, 2, :]  # world z in the trunk frame
+        rots, origins, centres = [], [], []
+        for k, parent in enumerate(self._parent):
+            R_p = eye.expand(M, 3, 3) if parent < 0 else rots[parent]
+            p = (self._pos[k] if parent < 0 else origins[parent] + R_p @ self._pos[k]).expand(M, 3)
+            R = R_p @ self._rot[k]
+            joint = self._joint[k]
+            if joint is not None:
+                adr, kind, data = joint
+                angle = q[:, adr, None, None]
+                if kind == "hinge":
+                    K, K2, anchor = data
+                    R_j = R @ (eye + torch.sin(angle) * K + (1 - torch.cos(angle)) * K2)  # Rodrigues
+                    p = p + (R - R_j) @ anchor  # rotation about the anchor, not the body origin
+                    R = R_j
+                else:
+                    p = p + (R @ data) * q[:, adr, None]
+            rots.append(R)
+            origins.append(p)
+            centres.append(p + R @ self._ipos[k])
+        centres = torch.stack(centres, 1)  # [M, B, 3]
+        weighted = torch.einsum("jb,mbi->mji", self._weights, centres)  # S_k [M, J, 3]
+        R_k = torch.stack([rots[k] for k in self._arm], 1)  # [M, J, 3, 3]
+        p_k = torch.stack([origins[k] for k in self._arm], 1) + (R_k @ self._anchors.unsqueeze(-1))[..., 0]
+        axes = R_k @ self._axes.unsqueeze(-1)  # [M, J, 3, 1]
+        lever = weighted - self._subtree_mass[:, None] * p_k
+        moment = torch.linalg.cross(lever, up[:, None, :].expand_as(lever))
+        return (self._g * (moment * axes[..., 0]).sum(-1)).numpy()

@@ -152,7 +152,10 @@ class Quadruped(composer.Entity):
         else:
             trunk.set_attributes(contype=LEG_CONTYPE, conaffinity=LEG_CONAFFINITY)
             self._add_actuated_legs(root, base)
-        self._add_arm(base, gravcomp=1 if rigid else 0)
+        self._add_arm(base)
+        if rigid:  # the arm controller's feed-forward; on a free joint MuJoCo would lift the trunk too
+            for name in ARM_COMPENSATED:
+                root.find("body", name).gravcomp = 1
         if rigid:
             for jn in ("base_x", "base_y"):
                 root.actuator.add("velocity", name=jn, joint=jn, kv=3000.0, forcerange=(-3000, 3000), forcelimited=True)
@@ -237,34 +240,32 @@ class Quadruped(composer.Entity):
             if b.parent is not a:  # MuJoCo already drops parent-child pairs
                 root.contact.add("exclude", body1=a, body2=b)
 
-    def _add_arm(self, base, gravcomp: int):
+    def _add_arm(self, base):
         r = ARM_RANGES
         m = ARM_LINK_MASSES
-        # gravcomp: the LL controller's gravity feed-forward for the arm's own links
-        # (ARM_COMPENSATED). Only on the planar robot: on a free joint MuJoCo would lift the trunk.
         j = dict(type="hinge", armature=0.05, damping=1.0, limited=True)
-        l1 = base.add("body", name="arm_link1", pos=ARM_MOUNT, gravcomp=gravcomp)
+        l1 = base.add("body", name="arm_link1", pos=ARM_MOUNT)
         l1.add("joint", name="arm_j1", axis=(0, 0, 1), range=r[0], **j)
         l1.add("geom", type="cylinder", fromto=(0, 0, 0, 0, 0, SHOULDER_HEIGHT), size=(0.055,), mass=m[0])
-        l2 = l1.add("body", name="arm_link2", pos=(0, 0, SHOULDER_HEIGHT), gravcomp=gravcomp)
+        l2 = l1.add("body", name="arm_link2", pos=(0, 0, SHOULDER_HEIGHT))
         l2.add("joint", name="arm_j2", axis=(0, 1, 0), range=r[1], **j)
         l2.add("geom", type="capsule", fromto=(0, 0, 0, UPPER_ARM, 0, 0), size=(0.045,), mass=m[1])
-        l3 = l2.add("body", name="arm_link3", pos=(UPPER_ARM, 0, 0), gravcomp=gravcomp)
+        l3 = l2.add("body", name="arm_link3", pos=(UPPER_ARM, 0, 0))
         l3.add("joint", name="arm_j3", axis=(0, 1, 0), range=r[2], **j)
         l3.add("geom", type="capsule", fromto=(0, 0, 0, 0.1, 0, 0), size=(0.04,), mass=m[2])
-        l4 = l3.add("body", name="arm_link4", pos=(0.1, 0, 0), gravcomp=gravcomp)
+        l4 = l3.add("body", name="arm_link4", pos=(0.1, 0, 0))
         l4.add("joint", name="arm_j4", axis=(1, 0, 0), range=r[3], **j)
         l4.add("geom", type="capsule", fromto=(0, 0, 0, FOREARM - 0.1, 0, 0), size=(0.035,), mass=m[3])
-        l5 = l4.add("body", name="arm_link5", pos=(FOREARM - 0.1, 0, 0), gravcomp=gravcomp)
+        l5 = l4.add("body", name="arm_link5", pos=(FOREARM - 0.1, 0, 0))
         l5.add("joint", name="arm_j5", axis=(0, 1, 0), range=r[4], **j)
         l5.add("geom", type="capsule", fromto=(0, 0, 0, WRIST, 0, 0), size=(0.03,), mass=m[4])
-        l6 = l5.add("body", name="arm_link6", pos=(WRIST, 0, 0), gravcomp=gravcomp)
+        l6 = l5.add("body", name="arm_link6", pos=(WRIST, 0, 0))
         l6.add("joint", name="arm_j6", axis=(1, 0, 0), range=r[5], **j)
-        self._add_gripper(l6, gravcomp)
+        self._add_gripper(l6)
 
-    def _add_gripper(self, flange, gravcomp: int):
+    def _add_gripper(self, flange):
         # Gripper frame: x along the approach direction; fingers close along y.
-        g = flange.add("body", name="gripper", pos=(0, 0, 0), gravcomp=gravcomp)
+        g = flange.add("body", name="gripper", pos=(0, 0, 0))
         g.add("geom", name="palm", type="box", pos=(0.04, 0, 0), size=(0.04, 0.075, 0.03), mass=GRIPPER_MASS * 0.7)
         g.add("site", name="ee_site", pos=(GRIPPER_LEN, 0, 0), size=(0.012,), rgba=(1, 0, 0, 0.6))
         fx = GRIPPER_LEN

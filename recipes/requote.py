@@ -26,7 +26,8 @@ from pnp.training.protocol import REPORTING_SEED  # noqa: E402
 
 QUOTED = ROOT / "results" / "quoted.yaml"  # name: recipe, checkpoint, experiment, overrides
 ROWS = yaml.safe_load(QUOTED.read_text())
-# The evaluation's own keys: everything else in a committed file is carried over.
+# What previous_evaluation keeps of the committed file; the rest of that file (a pipeline's
+# phases, selection, notes) is carried over where the new evaluation does not write it.
 HEADLINE = ("seed", "trials", "success_rate", "completion_time_mean_s", "completion_time_std_s", "failure_causes",
             "commit", "date_utc", "command", "num_worlds")
 

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from pnp.training.protocol import REPORTING_SEED, seed_role
+
 
 # Written figures, not inputs: a batch of evaluations rewriting results/*.json is still the
 # committed code (checkpoints in results/ are inputs and do count).
@@ -85,8 +87,6 @@ def check_clean(out, dirty_reason: str | None) -> None:
 def evaluation_record(ckpt: dict, seed: int, dirty_reason: str | None) -> dict:
     """What every evaluation result records beside its figures: the seed and its role, the
     pairing, the experiment and configuration hash of the checkpoint, and the provenance."""
-    from pnp.training.protocol import REPORTING_SEED, seed_role
-
     source = launch_source(ckpt.get("launches", []))
     record = {"seed": seed, "seed_role": seed_role(seed), "reporting_seed": REPORTING_SEED, "paired": True,
               "experiment": source["experiment"], "launch_overrides": source["launch_overrides"],

@@ -24,15 +24,7 @@ import mujoco
 import numpy as np
 import torch
 
-
-def _quat_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [..., 3, 3] of unit quaternions [..., 4] (w, x, y, z)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+from pnp.backend import quat_to_matrix
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -56,7 +48,7 @@ class ArmGravity:
         f64 = dict(dtype=torch.float64)
         self._parent = [chain.index(model.body_parentid[b]) if b != root else -1 for b in chain]
         self._pos = torch.tensor(model.body_pos[chain], **f64)
-        self._rot = _quat_matrix(torch.tensor(model.body_quat[chain], **f64))
+        self._rot = quat_to_matrix(torch.tensor(model.body_quat[chain], **f64))
         self._ipos = torch.tensor(model.body_ipos[chain], **f64)
         mass = torch.tensor([model.body_mass[b] if model.body(b).name in names else 0.0 for b in chain], **f64)
         self._joint = []  # per body: (qposadr, "hinge" (K, K^2, anchor) | "slide" axis) or None
@@ -106,7 +98,7 @@ class ArmGravity:
         """Joint torques [M, 6] holding the compensated bodies, for worlds' ``qpos`` [M, nq]."""
         q = torch.from_numpy(np.asarray(qpos, dtype=np.float64))
         M, eye = q.shape[0], torch.eye(3, dtype=torch.float64)
-        up = _quat_matrix(q[:, self._base_qpos + 3 : self._base_qpos + 7])[:, 2, :]  # world z in the trunk frame
+        up = quat_to_matrix(q[:, self._base_qpos + 3 : self._base_qpos + 7])[:, 2, :]  # world z in the trunk frame
         rots, origins, centres = [], [], []
         for k, parent in enumerate(self._parent):
             R_p = eye.expand(M, 3, 3) if parent < 0 else rots[parent]

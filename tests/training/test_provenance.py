@@ -6,13 +6,21 @@ import sys
 
 from tests.training._tiny import ROOT
 
+GIT = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
+
+
+def _repo(path, files: dict[str, str]) -> None:
+    """A git repository at ``path`` with ``files`` committed."""
+    subprocess.run(["git", "init", "-q", str(path)], check=True)
+    for name, text in files.items():
+        (path / name).parent.mkdir(parents=True, exist_ok=True)
+        (path / name).write_text(text)
+    subprocess.run([*GIT, "add", "."], cwd=path, check=True)
+    subprocess.run([*GIT, "commit", "-qm", "x"], cwd=path, check=True)
+
 
 def test_commit_is_read_at_start_not_after_the_script_wrote_its_output(tmp_path):
-    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
-    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
-    (tmp_path / "out.gif").write_text("old")
-    subprocess.run([*git, "add", "out.gif"], cwd=tmp_path, check=True)
-    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    _repo(tmp_path, {"out.gif": "old"})
     script = ("import sys; sys.path.insert(0, sys.argv[1]); from pnp.training.provenance import provenance; "
               "open('out.gif', 'w').write('new'); print(provenance()['commit'])")
     out = subprocess.run([sys.executable, "-c", script, str(ROOT)], cwd=tmp_path, capture_output=True,
@@ -23,18 +31,11 @@ def test_commit_is_read_at_start_not_after_the_script_wrote_its_output(tmp_path)
 
 
 def test_rewritten_figures_in_results_are_not_a_dirty_tree_but_code_and_checkpoints_are(tmp_path):
-    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
-    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
-    (tmp_path / "results").mkdir()
-    files = {"results/eval.json": "{}", "results/ckpt.pt": "w", "code.py": "x = 1"}
-    for name, text in files.items():
-        (tmp_path / name).write_text(text)
-    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
-    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    _repo(tmp_path, {"results/eval.json": "{}", "results/ckpt.pt": "w", "code.py": "x = 1"})
     script = "import sys; sys.path.insert(0, sys.argv[1]); from pnp.training.provenance import commit; print(commit())"
 
     def state(changed: str) -> str:
-        subprocess.run([*git, "checkout", "-q", "."], cwd=tmp_path, check=True)
+        subprocess.run([*GIT, "checkout", "-q", "."], cwd=tmp_path, check=True)
         (tmp_path / changed).write_text("changed")
         return subprocess.run([sys.executable, "-c", script, str(ROOT)], cwd=tmp_path, capture_output=True,
                               text=True, check=True).stdout.strip()
@@ -45,11 +46,7 @@ def test_rewritten_figures_in_results_are_not_a_dirty_tree_but_code_and_checkpoi
 
 
 def test_a_dirty_tree_names_its_files_and_results_need_a_reason(tmp_path):
-    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
-    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
-    (tmp_path / "code.py").write_text("x = 1")
-    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
-    subprocess.run([*git, "commit", "-qm", "x"], cwd=tmp_path, check=True)
+    _repo(tmp_path, {"code.py": "x = 1"})
     (tmp_path / "code.py").write_text("x = 2")
     script = """
 import sys; sys.path.insert(0, sys.argv[1])

@@ -1,5 +1,5 @@
 """Batched 4-stage end-effector tracking env (the paper's curriculum ablation): one robot
-touches four points in order with its gripper (task in ``pnp.ee_task``).
+touches four points in order with its gripper (task in ``pnp.task.ee_tracking``).
 
 Keys (group ``"agents"``, one robot), laid out as in ``PnPEnv``:
   ("agents", "action")            [N, 1, 8]  as PnPEnv (the grasp entry only moves the fingers)
@@ -25,9 +25,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 
-from pnp.backend import Backend
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.ee_task import (
+from pnp.sim.backend import Backend
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.task.ee_tracking import (
     EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_RULES, default_reward, observations,
     point_distances, reward_terms, sample_ee_layout, stage_conditions,
 )
@@ -51,7 +51,7 @@ class EETrackingEnv(RobotEnvBase):
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
         if track_rule not in TRACK_RULES:
             raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
-        self.track_rule = track_rule  # see pnp.ee_task.TRACK_RULES
+        self.track_rule = track_rule  # see pnp.task.ee_tracking.TRACK_RULES
         self._make_specs()
         N = num_worlds
         self._goal, self._init_goal_dist = torch.zeros(N, 2), torch.ones(N)  # unused PnPState fields

@@ -1,6 +1,6 @@
 """Batched locomotion env for the learned low level (issue 24): N worlds, each a floor and one
 ``Quadruped(legs="actuated")`` tracking a base-velocity command at 50 Hz (task in
-``pnp.locomotion``).
+``pnp.legs.locomotion``).
 
 Keys (group ``"agents"``, one robot), laid out as the other envs:
   ("agents", "action")            [N, 1, 12] leg joint offsets in [-1, 1], LEG_JOINTS order;
@@ -32,12 +32,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 
 from pnp.envs.pnp_env import RobotEnvBase, _torch_single_threaded
-from pnp.locomotion import (
+from pnp.legs.locomotion import (
     DECIMATION, EPISODE_S, LOCO_OBS_DIM, LOCO_REWARD_TERMS, N_LEG, POLICY_DT, STAND, LocomotionPhysics,
     LegServo, base_readouts, build_locomotion_scene, default_reward, fallen, feet_air_time, observation,
     reward_terms, sample_arm_goals, sample_commands, sample_uniform,
 )
-from pnp.robot import ARM_DEFAULT, ARM_SPEED, FINGER_STROKE
+from pnp.sim.robot import ARM_DEFAULT, ARM_SPEED, FINGER_STROKE
 
 SETTINGS = ("command_low", "command_high", "command_resample_s", "stand_share", "arm_resample_s", "payload_mass",
              "push_interval_s", "push_speed", "fall_height", "fall_tilt", "leg_kp", "leg_kd", "action_scale", "tracking_sigma")
@@ -54,6 +54,11 @@ def _range(value, name: str, low: float = 0.0) -> tuple[float, float]:
     if not low <= lo <= hi:
         raise ValueError(f"env.locomotion.{name} must be [low, high] with {low} <= low <= high, got {list(value)}")
     return lo, hi
+
+
+def leg_action_spec() -> Bounded:
+    """The leg policy's action: 12 joint offsets in [-1, 1] (scaled by the servo), one robot."""
+    return Bounded(-torch.ones(1, N_LEG), torch.ones(1, N_LEG), shape=(1, N_LEG))
 
 
 class LocomotionEnv(RobotEnvBase):
@@ -113,8 +118,7 @@ class LocomotionEnv(RobotEnvBase):
 
     def _make_specs(self):
         agents = lambda d: Composite(d, shape=(1,))  # noqa: E731
-        self.full_action_spec_unbatched = Composite({"agents": agents({
-            "action": Bounded(-torch.ones(1, N_LEG), torch.ones(1, N_LEG), shape=(1, N_LEG))})})
+        self.full_action_spec_unbatched = Composite({"agents": agents({"action": leg_action_spec()})})
         flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool)  # noqa: E731
         obs = {"observation": Unbounded(shape=(1, LOCO_OBS_DIM)),
                "reward_terms": Unbounded(shape=(1, len(LOCO_REWARD_TERMS))),

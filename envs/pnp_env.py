@@ -5,7 +5,7 @@ Keys (multi-agent group ``"agents"``, A robots):
                                               (m, base frame), EE yaw (rad), grasp probability
   ("agents", "observation")       [N, A, 74] ego | goal | object | neighbour, concatenated
   ("agents", "ego"|"goal"|"object"|"neighbour")  the same blocks, named
-  ("agents", "reward_terms")      [N, A, T]  Table II + fixed terms (``pnp.terms``)
+  ("agents", "reward_terms")      [N, A, T]  Table II + fixed terms (``pnp.task.terms``)
   ("agents", "stage_conditions")  [N, A, 6]  forward condition of each stage edge
   ("agents", "reward")            [N, A, 1]  default reward: terms at mu_j, no curriculum
   ("agents", "action_clipped")    [N, A]     the action was out of bounds and clipped
@@ -35,14 +35,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from pnp.backend import Backend, MujocoBackend
-from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
-from pnp.layout import START_RANGE, paired_layouts, sample_layout
+from pnp.sim.backend import Backend, MujocoBackend
+from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
+from pnp.sim.layout import START_RANGE, paired_layouts, sample_layout
 from pnp.task import (
     ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState, default_reward, geometry,
     observations, reward_terms, stage_conditions, update_claims,
 )
-from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.task.terms import CONDITIONS, REWARD_TERMS
 
 BLOCKS = tuple(OBS_BLOCKS)
 
@@ -95,7 +95,7 @@ class RobotEnvBase(EnvBase):
         if backend == "mujoco":
             return MujocoBackend(self.num_worlds, self.num_robots, box, nthread=nthread, **(options or {}))
         if backend == "kinematic":
-            from pnp.kinematic import KinematicBackend  # optional second backend
+            from pnp.kinematic.backend import KinematicBackend  # optional second backend
 
             return KinematicBackend(self.num_worlds, self.num_robots, **(options or {}))
         raise ValueError(f"unknown backend {backend!r}; expected 'mujoco' or 'kinematic'")

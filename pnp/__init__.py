@@ -2,5 +2,5 @@
 
 Imports nothing: ``pnp.transforms`` needs only torch, torchrl and tensordict, and the
 modules that load mujoco or dm_control set up offscreen rendering themselves
-(:mod:`pnp._offscreen`).
+(:mod:`pnp.sim._offscreen`).
 """

@@ -27,7 +27,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from pnp.training.provenance import provenance  # noqa: E402
 
 from pnp.envs.pnp_env import PnPEnv  # noqa: E402
-from pnp.physics import CTRL  # noqa: E402
+from pnp.sim.physics import CTRL  # noqa: E402
 from pnp.task import ACTION_HIGH, ACTION_LOW  # noqa: E402
 
 
@@ -76,8 +76,8 @@ def bench_env(robots: int, batch: int, steps: int, repeats: int, nthread: int | 
 def bench_low_level(checkpoint: str, robots: int, batch: int, steps: int, repeats: int, nthread: int | None) -> dict:
     """The PnP env on the ideal low level against the learned one (legs walked by the leg
     policy of ``checkpoint``), the same random actions, timed interleaved."""
-    from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
-    from pnp.legged_backend import LeggedMujocoBackend
+    from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+    from pnp.legs.backend import LeggedMujocoBackend
     from pnp.training.low_level import load_locomotion_policy
 
     leg_policy, policy_t = load_locomotion_policy(checkpoint), []
@@ -111,7 +111,7 @@ def bench_low_level(checkpoint: str, robots: int, batch: int, steps: int, repeat
 
 
 def bench_kinematic():
-    from bench_kinematic import bench_kinematic as run  # needs pnp.kinematic
+    from bench_kinematic import bench_kinematic as run  # needs pnp.kinematic.backend
 
     rows = run()
     for r in rows:

@@ -1,6 +1,6 @@
 """Physics speed of the planar robot against the floating base on actuated legs, side by side.
 
-Both scenes are the arena of ``pnp.scene`` with one robot and the smallest single-robot box
+Both scenes are the arena of ``pnp.sim.scene`` with one robot and the smallest single-robot box
 resting 1.2 m in front of it: the planar one is ``build_scene`` itself, the legged one the
 same composition with ``Quadruped(legs="actuated")``. Each model first holds its pose for
 1 s (arm at its default, fingers open), then ``mujoco.rollout`` runs ``--steps`` physics
@@ -32,10 +32,10 @@ from mujoco import rollout
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from pnp.training.provenance import provenance  # noqa: E402
 
-from pnp.box import SINGLE_ROBOT_BOXES, HandleBox  # noqa: E402
-from pnp.arm_gravity import ArmGravity  # noqa: E402
-from pnp.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, FINGER_STROKE, LEG_JOINTS, Quadruped  # noqa: E402
-from pnp.scene import PnPArena, build_scene  # noqa: E402
+from pnp.sim.box import SINGLE_ROBOT_BOXES, HandleBox  # noqa: E402
+from pnp.legs.arm_gravity import ArmGravity  # noqa: E402
+from pnp.sim.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, FINGER_STROKE, LEG_JOINTS, Quadruped  # noqa: E402
+from pnp.sim.scene import PnPArena, build_scene  # noqa: E402
 
 BOX = SINGLE_ROBOT_BOXES[0]
 SETTLE_S = 1.0

@@ -17,10 +17,10 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.backend import MujocoBackend
-from pnp.box import SINGLE_ROBOT_BOXES
+from pnp.sim.backend import MujocoBackend
+from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import LocomotionEnv
-from pnp.legged_backend import LeggedMujocoBackend
+from pnp.legs.backend import LeggedMujocoBackend
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.config import migrate
 from pnp.training.ll_quality import command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking

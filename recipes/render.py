@@ -29,8 +29,8 @@ from tensordict.nn import InteractionType, set_interaction_type  # noqa: E402
 
 
 from pnp.envs.pnp_env import PnPEnv  # noqa: E402
-from pnp.render import WorldRenderer  # noqa: E402
-from pnp.scripted import ScriptedPnP  # noqa: E402
+from pnp.sim.render import WorldRenderer  # noqa: E402
+from pnp.task.scripted import ScriptedPnP  # noqa: E402
 from pnp.training.checkpoint import resolve_checkpoint  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy  # noqa: E402

@@ -41,7 +41,7 @@ from omegaconf import DictConfig, OmegaConf
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from pnp.terms import STAGES  # noqa: E402
+from pnp.task.terms import STAGES  # noqa: E402
 from pnp.training.collect import windowed_mean  # noqa: E402
 from pnp.training.config import register  # noqa: E402
 from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline, total_frames  # noqa: E402

@@ -16,7 +16,6 @@ A resumed run continues in its checkpoint's folder, bit for bit. Keys and defaul
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -24,7 +23,7 @@ from omegaconf import DictConfig
 
 from pnp.training.config import register
 from pnp.training.pipeline import run_pipeline
-from pnp.training.trainer import train
+from pnp.training.trainer import resume_in_place, train
 
 register()
 
@@ -38,15 +37,6 @@ def main(cfg: DictConfig) -> None:
             raise SystemExit(f"stopped before the pipeline's end; the same command resumes in {cfg.out_dir}")
     else:
         train(resume_in_place(cfg))
-
-
-def resume_in_place(cfg: DictConfig) -> DictConfig:
-    """Rerunning the same command continues its run, as pipelines do: an ``out_dir`` that
-    holds a checkpoint is resumed, never restarted over (which would overwrite its metrics)."""
-    ckpt = Path(cfg.out_dir) / "checkpoint.pt"
-    if not cfg.resume and ckpt.exists():
-        cfg.resume = str(ckpt)
-    return cfg
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs.transforms import Transform
 from torchrl.envs.transforms.utils import _get_reset
 
-from pnp.stage_graph import StageGraph
+from pnp.task.stage_graph import StageGraph
 
 from ._checks import _check_agent_shape, _check_group_batch, _ClonesOwnBuffers, _EnvOnly, _fmt, _get
 
@@ -69,7 +69,7 @@ class _ResetKeysMixin:
 
 
 class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
-    """Advances each robot's stage along a :class:`~pnp.stage_graph.StageGraph`.
+    """Advances each robot's stage along a :class:`~pnp.task.stage_graph.StageGraph`.
 
     Reads ``conditions_key`` (bool ``[*B, A, C]``, columns in ``graph.conditions``
     order) at t+1 and the stage at t; writes the stage at t+1. Keys written:

@@ -60,7 +60,7 @@ class StageRewards(FixedScales):
     ``completed_share=0`` is the column without it.
 
     Args:
-        high: upper bound of every stage-wise term's raw value (``pnp.terms.REWARD_TABLE``);
+        high: upper bound of every stage-wise term's raw value (``pnp.task.terms.REWARD_TABLE``);
             needed when ``completed_share > 0``.
         completed_share: the share of a stage's best step paid above it.
         **cfg: the :class:`~pnp.transforms.StageRewardSchedule` arguments.
@@ -121,7 +121,7 @@ class SequentialSubtask(FixedScales):
 
     Args:
         subtask: k, a buffer (in the state dict); :meth:`set_subtask` moves it on.
-        high: upper bound of every stage-wise term's raw value (``pnp.terms.REWARD_TABLE``).
+        high: upper bound of every stage-wise term's raw value (``pnp.task.terms.REWARD_TABLE``).
         gamma: the discount the bonus is measured with.
         success_bonus: its share (0: none).
         **cfg: the :class:`~pnp.transforms.StageRewardSchedule` arguments.

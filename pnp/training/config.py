@@ -12,9 +12,9 @@ from typing import Any, Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.layout import START_RANGE
-from pnp.locomotion import ACTION_SCALE, TRACKING_SIGMA
-from pnp.robot import LEG_KD, LEG_KP
+from pnp.sim.layout import START_RANGE
+from pnp.legs.locomotion import ACTION_SCALE, TRACKING_SIGMA
+from pnp.sim.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
 
 
@@ -64,7 +64,7 @@ class LocomotionConfig:
     # so the penalties cannot outweigh what a gait being learned earns. Off in our first leg
     # policy (docs/low_level.md).
     only_positive_rewards: bool = False
-    # The leg servos and the action's scale (pnp.locomotion.LegServo); the defaults are
+    # The leg servos and the action's scale (pnp.legs.locomotion.LegServo); the defaults are
     # robot.py's model (legged_gym's ANYmal C kp 80, kd 2) and legged_gym's 0.5 rad. The leg
     # policy's checkpoint carries them to the legged backend (docs/low_level.md: kp 80 sags).
     leg_kp: float = LEG_KP
@@ -97,8 +97,8 @@ class EnvConfig:
     # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
     box_mass: Optional[List[float]] = None
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
-    # ideal: planar base, IK arm (pnp.executor). learned: legs walked by a locomotion policy
-    # (pnp.legged_backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
+    # ideal: planar base, IK arm (pnp.sim.executor). learned: legs walked by a locomotion policy
+    # (pnp.legs.backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
     low_level: str = "ideal"
     low_level_checkpoint: Optional[str] = None
     # MuJoCo only, m/s per finger: finger targets ramp at this speed. null: they jump, and

@@ -66,7 +66,7 @@ class DropoutConfig:
 class NoiseConfig:
     """The observation noise of the student (and of the noisy teacher in evaluation)."""
 
-    # block -> field -> std (pnp.task_observations.OBS_FIELDS); fields not listed stay exact
+    # block -> field -> std (pnp.task.observations.OBS_FIELDS); fields not listed stay exact
     sigma: Dict[str, Dict[str, float]] = field(default_factory=_sigma)
     scale: float = 1.0  # multiplies every sigma (0: no Gaussian noise; dropouts still apply)
     dropout: DropoutConfig = field(default_factory=DropoutConfig)

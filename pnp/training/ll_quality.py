@@ -15,12 +15,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pnp.backend import Layout, MujocoBackend
-from pnp.box import SINGLE_ROBOT_BOXES
+from pnp.sim.backend import Layout, MujocoBackend
+from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import SETTINGS
-from pnp.kinematics import clamp_reach
-from pnp.locomotion import LOCO_OBS_FIELDS, POLICY_DT, STAND, LegServo
-from pnp.robot import LEG_TORQUE, leg_ranges
+from pnp.sim.arm_ik import clamp_reach
+from pnp.legs.locomotion import LOCO_OBS_FIELDS, POLICY_DT, STAND, LegServo
+from pnp.sim.robot import LEG_TORQUE, leg_ranges
 from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT, yaw_rotation
 
 LegPolicy = Callable[[torch.Tensor], torch.Tensor]

@@ -1,5 +1,5 @@
 """The learned low level in a pick-and-place env (``env.low_level=learned``): a locomotion
-policy from a ``task=locomotion`` checkpoint, driving the legs of ``pnp.legged_backend``."""
+policy from a ``task=locomotion`` checkpoint, driving the legs of ``pnp.legs.backend``."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,9 +9,10 @@ from omegaconf import DictConfig
 from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 
-from pnp.box import BoxAsset, DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
-from pnp.legged_backend import LeggedMujocoBackend, LowLevelPolicy
-from pnp.locomotion import LOCO_OBS_DIM, LegServo
+from pnp.sim.box import BoxAsset, DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+from pnp.legs.backend import LeggedMujocoBackend, LowLevelPolicy
+from pnp.envs.locomotion_env import leg_action_spec
+from pnp.legs.locomotion import LOCO_OBS_DIM, LegServo
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.config import migrate
 from pnp.training.keys import ACTION, OBS, STAGE_ONE_HOT
@@ -34,20 +35,15 @@ def load_locomotion_policy(checkpoint: str) -> LocomotionPolicy:
     """The deterministic leg policy of a ``task=locomotion`` run folder or checkpoint file:
     observations [M, LOCO_OBS_DIM] (raw; the checkpoint's normalisation applies) -> leg actions
     [M, 12], with the servo gains and action scale of its training (``env.locomotion``)."""
-    from pnp.training.models import make_models  # the trainer's stack, loaded only when asked for
-    from pnp.training.tasks import make_env
+    from pnp.training.models import PolicySpecs, make_models  # the trainer's stack, loaded only when asked for
 
     path = resolve_checkpoint(checkpoint, "runs")
     ckpt = load_checkpoint(path)
     cfg = migrate(ckpt["cfg"])
     if cfg.env.task != "locomotion":
         raise ValueError(f"env.low_level_checkpoint {path} was trained on env.task={cfg.env.task!r}, not locomotion")
-    cfg.env.num_worlds, cfg.env.nthread = 1, 1  # only for the specs the models are built from
-    env = make_env(cfg.env, cfg.curriculum, 0)
-    try:
-        actor = make_models(cfg.model, cfg.loss, env).actor
-    finally:
-        env.close()
+    specs = PolicySpecs(n_agents=1, n_obs=LOCO_OBS_DIM, n_stages=1, action=leg_action_spec())  # the task's one stage
+    actor = make_models(cfg.model, cfg.loss, specs).actor
     actor.load_state_dict(ckpt["actor"])
     actor.eval()
 

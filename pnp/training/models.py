@@ -10,6 +10,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
+from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.modules import MultiAgentMLP, PopArtValueNorm, ProbabilisticActor, TanhNormal
 
@@ -215,6 +216,22 @@ class PopArt(nn.Module):
             self.bias.copy_((s0 * self.bias + m0 - m1) / s1)
 
 
+@dataclass(frozen=True)
+class PolicySpecs:
+    """What the networks are built from: per robot, the observation width, the number of
+    stages (the one-hot's width) and the action spec ``[A, n_act]``."""
+
+    n_agents: int
+    n_obs: int
+    n_stages: int
+    action: TensorSpec
+
+    @classmethod
+    def of(cls, env: EnvBase) -> PolicySpecs:
+        obs = env.observation_spec[OBS].shape
+        return cls(obs[-2], obs[-1], env.observation_spec[STAGE_ONE_HOT].shape[-1], env.full_action_spec_unbatched[ACTION])
+
+
 @dataclass
 class Models:
     """What :func:`make_models` builds; ``obs_norm`` is shared by actor and critic."""
@@ -266,18 +283,17 @@ def _param_head(model_cfg: DictConfig, n_act: int) -> nn.Module:
     return head
 
 
-def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, env: EnvBase) -> Models:
+def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, source: EnvBase | PolicySpecs) -> Models:
     """Decentralised actor with shared parameters; critic centralised iff there are 2 robots.
-    With ``model.per_stage``, one such actor and critic per stage (:class:`StageEnsemble`)."""
-    n_agents = env.observation_spec[OBS].shape[-2]
-    n_obs = env.observation_spec[OBS].shape[-1]
-    n_in = n_obs + env.observation_spec[STAGE_ONE_HOT].shape[-1]
-    spec = env.full_action_spec_unbatched[ACTION]
+    With ``model.per_stage``, one such actor and critic per stage (:class:`StageEnsemble`).
+    ``source``: the env the models act in, or its :class:`PolicySpecs`."""
+    specs = source if isinstance(source, PolicySpecs) else PolicySpecs.of(source)
+    n_agents, n_obs, n_stages, spec = specs.n_agents, specs.n_obs, specs.n_stages, specs.action
+    n_in = n_obs + n_stages
     obs_norm = ObsNorm(n_obs) if model_cfg.obs_norm else None
     if model_cfg.per_stage not in PER_STAGE:
         raise ValueError(f"model.per_stage must be one of {PER_STAGE}, got {model_cfg.per_stage!r}")
     per_stage = model_cfg.per_stage != "none"
-    n_stages = env.observation_spec[STAGE_ONE_HOT].shape[-1]
     if model_cfg.grasp_open_min_prob > 0 and not all(0 <= k < n_stages for k in model_cfg.grasp_open_stages):
         raise ValueError(f"model.grasp_open_stages={list(model_cfg.grasp_open_stages)}: this task has stages 0..{n_stages - 1}")
     actor_head = _param_head(model_cfg, spec.shape[-1])

@@ -29,7 +29,7 @@ from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import windowed_mean
 from pnp.training.config import changed_settings, migrate
 from pnp.training.plots import plot_pipeline
-from pnp.training.trainer import RESUME_OVERRIDES, Trainer
+from pnp.training.trainer import RESUMABLE, Trainer
 
 STATE = "pipeline.json"
 
@@ -186,15 +186,10 @@ def _phase_value(cfg: DictConfig, index: int, key: str):
     return overrides[key] if key in overrides else OmegaConf.select(cfg, key)
 
 
-# Keys of a phase's run configuration that may differ between its start and its resume.
-_RESUMABLE = set(RESUME_OVERRIDES) | {"out_dir", "resume", "warm_start", "warm_start_curriculum",
-                                      "warm_start_fold_constant"}
-
-
 def changed_since_start(pcfg: DictConfig, saved: dict) -> dict:
     """``{key: (at start, now)}`` for every setting of a resumed phase that differs from its
     checkpoint's: a resume runs the checkpoint's settings, so such an edit would be ignored."""
-    return changed_settings(pcfg, migrate(saved), _RESUMABLE)
+    return changed_settings(pcfg, migrate(saved), RESUMABLE)
 
 
 def load_state(out_dir: Path) -> list[dict]:

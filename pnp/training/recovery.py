@@ -28,7 +28,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 
 from pnp.task import HL_DT
-from pnp.task_geometry import FOOTPRINT_HALF
+from pnp.task.geometry import FOOTPRINT_HALF
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
 from pnp.training.distill_config import distill_config

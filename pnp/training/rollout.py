@@ -30,10 +30,10 @@ from tensordict.nn import InteractionType, ProbabilisticTensorDictSequential, se
 from torchrl.envs import TransformedEnv
 from tqdm import tqdm
 
-from pnp.layout import START_RANGE
-from pnp.scene import GOAL_RADIUS
+from pnp.sim.layout import START_RANGE
+from pnp.sim.scene import GOAL_RADIUS
 from pnp.task import ACTION_NAMES, OBS_FIELDS
-from pnp.terms import CONDITIONS, REWARD_TERMS, STAGES
+from pnp.task.terms import CONDITIONS, REWARD_TERMS, STAGES
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
 from pnp.training.config import KinematicOptions, migrate

@@ -15,7 +15,7 @@ from typing import Callable
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.training.config import changed_settings, migrate
-from pnp.training.pipeline import _RESUMABLE
+from pnp.training.trainer import RESUMABLE
 
 # The rows' columns a comparison reads (curves, thresholds, Bendikas' sub-task ends).
 ROW_KEYS = ("iteration", "frames", "wall_s", "phase", "episodes", "end_stage", "success_rate", "subtask",
@@ -43,7 +43,7 @@ def load_record(path: Path, cfg: DictConfig) -> dict | None:
         payload = saved["record"]
     except (ValueError, KeyError, TypeError) as err:
         raise ValueError(f"{path}: not a run record ({err!r}); move it away to retrain that run") from err
-    changed = changed_settings(cfg, then, _RESUMABLE)
+    changed = changed_settings(cfg, then, RESUMABLE)
     if changed:
         print(f"{path}: recorded for other settings ({sorted(changed)[:5]}), ignored: the run trains")
         return None

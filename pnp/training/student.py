@@ -22,7 +22,7 @@ from torchrl.envs import Transform, TransformedEnv
 from torchrl.modules import ProbabilisticActor
 
 from pnp.task import HL_DT
-from pnp.task_observations import OBS_BLOCKS, OBS_FIELDS
+from pnp.task.observations import OBS_BLOCKS, OBS_FIELDS
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint, seed_everything
 from pnp.training.config import migrate
 from pnp.training.distill_config import NoiseConfig, distill_config

@@ -8,13 +8,13 @@ from typing import Callable
 from omegaconf import DictConfig
 from torchrl.envs import Compose, EnvBase, RewardClipping, StepCounter, TransformedEnv
 
-from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
-from pnp.ee_task import ee_reward_config, ee_stage_graph
+from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
+from pnp.task.ee_tracking import ee_reward_config, ee_stage_graph
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.envs.pnp_env import PnPEnv
-from pnp.locomotion import locomotion_reward_config, locomotion_stage_graph
-from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
+from pnp.legs.locomotion import locomotion_reward_config, locomotion_stage_graph
+from pnp.task.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
 from pnp.training.config import KinematicOptions
 from pnp.training.keys import REWARD, STAGE_ONE_HOT
 from pnp.training.low_level import LOW_LEVELS, learned_backend
@@ -33,7 +33,7 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
     if env_cfg.finger_speed is not None:
         if env_cfg.backend != "mujoco":
             raise ValueError(f"env.finger_speed={env_cfg.finger_speed} applies to MuJoCo's fingers; the kinematic "
-                             "backend's move at pnp.kinematic_step.FINGER_SPEED")
+                             "backend's move at pnp.kinematic.step.FINGER_SPEED")
         options = {"finger_speed": float(env_cfg.finger_speed)}
     if env_cfg.low_level == "learned":
         backend = learned_backend(env_cfg, BOX_SETS[env_cfg.boxes])

@@ -29,7 +29,7 @@ from pnp.training.checkpoint import (
     seed_everything, set_rng_state,
 )
 from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
-from pnp.training.config import migrate
+from pnp.training.config import changed_settings, migrate
 from pnp.training.keys import (
     ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, ROLL_IN, SCALE, VALUE, VALUE_TARGET,
 )
@@ -83,6 +83,28 @@ def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         OmegaConf.update(saved, k, OmegaConf.select(cfg, k), merge=False)
     saved.out_dir, saved.resume = str(path.parent), str(path)
     return saved, ckpt
+
+
+# Keys that may differ between a run's start and a command that continues it in its folder.
+RESUMABLE = frozenset(RESUME_OVERRIDES) | {"out_dir", "resume", "warm_start", "warm_start_curriculum",
+                                           "warm_start_fold_constant"}
+
+
+def resume_in_place(cfg: DictConfig) -> DictConfig:
+    """Rerunning the same command continues its run: an ``out_dir`` that holds a checkpoint is
+    resumed, never restarted over (which would overwrite its metrics). A folder holds one run:
+    a command whose settings differ from that run's (other than :data:`RESUMABLE`) is refused,
+    naming the keys, since a resume would silently run the old settings."""
+    path = Path(cfg.out_dir) / "checkpoint.pt"
+    if cfg.resume or not path.exists():
+        return cfg
+    changed = changed_settings(cfg, migrate(load_checkpoint(path)["cfg"]), RESUMABLE)
+    if changed:
+        raise ValueError(f"out_dir={cfg.out_dir} holds a run made with other settings (key: (that run, this command)) "
+                         f"{changed}: choose another out_dir, or continue that run with its own settings "
+                         f"(resume={cfg.out_dir})")
+    cfg.resume = str(path)
+    return cfg
 
 
 def launches(ckpt: dict | None) -> list[dict]:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from pnp.physics import FULL
+from pnp.sim.physics import FULL
 from pnp.training.rollout import GRABBED, box_up_z
 
 from analysis_cli import OnsetWindow, hooked_trials, save, settings

@@ -17,7 +17,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict.nn import InteractionType, set_interaction_type
 
-from pnp.terms import CONDITIONS
+from pnp.task.terms import CONDITIONS
 from pnp.training.rollout import load_policy
 
 from analysis_cli import save, settings

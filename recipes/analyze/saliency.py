@@ -28,7 +28,7 @@ from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.task import OBS_BLOCKS, OBS_FIELDS
-from pnp.terms import STAGES
+from pnp.task.terms import STAGES
 from pnp.training.keys import LOC, OBS, SCALE, STAGE, STAGE_ONE_HOT
 from pnp.training.models import GRASP_ENTRY, dist_from_params
 from pnp.training.provenance import provenance

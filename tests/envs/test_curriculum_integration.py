@@ -4,8 +4,8 @@ from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from pnp.envs.pnp_env import PnPEnv
-from pnp.stage_graph import pnp_default_reward_config, pnp_default_stage_graph
-from pnp.terms import STAGE_TERMS
+from pnp.task.stage_graph import pnp_default_reward_config, pnp_default_stage_graph
+from pnp.task.terms import STAGE_TERMS
 from pnp.transforms import StageTransition, make_reward_schedule
 
 

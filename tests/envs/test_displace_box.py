@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from pnp.backend import BOX_DROP
+from pnp.sim.backend import BOX_DROP
 from pnp.envs.pnp_env import PnPEnv
-from pnp.scripted import ScriptedPnP
-from pnp.terms import CONDITIONS
+from pnp.task.scripted import ScriptedPnP
+from pnp.task.terms import CONDITIONS
 
 GRABBED, LIFTED = CONDITIONS.index("object_grabbed"), CONDITIONS.index("object_lifted")
 

@@ -8,14 +8,14 @@ from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from pnp import task
-from pnp.ee_scripted import ScriptedEETracking
-from pnp.ee_task import (
+from pnp.task.ee_scripted import ScriptedEETracking
+from pnp.task.ee_tracking import (
     BOX_PARK_X, EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, MIN_GAP, N_POINTS, POINT_HEIGHT, POINT_RING,
     TOUCH_TOL, ee_reward_config, ee_stage_graph, reward_terms, sample_ee_layout,
 )
 from pnp.envs.ee_tracking_env import EETrackingEnv
 from pnp.task import ACTION_HIGH, ACTION_LOW, BaseFrame, ego_block
-from pnp.terms import REWARD_TERMS
+from pnp.task.terms import REWARD_TERMS
 from pnp.transforms import StageTransition, make_reward_schedule
 
 

@@ -11,11 +11,11 @@ from omegaconf import OmegaConf
 from torchrl.envs.utils import check_env_specs
 
 from pnp.envs.locomotion_env import LocomotionEnv
-from pnp.locomotion import (
+from pnp.legs.locomotion import (
     LOCO_OBS_DIM, LOCO_OBS_FIELDS, LOCO_REWARD_TERMS, LOCO_REWARD_WEIGHTS, POLICY_DT, REWARD_SCALES, STAND,
     LegServo, locomotion_reward_config, locomotion_stage_graph,
 )
-from pnp.robot import LEGGED_STAND_HEIGHT
+from pnp.sim.robot import LEGGED_STAND_HEIGHT
 from pnp.task import ACTION_HIGH, ACTION_LOW
 from pnp.training.config import LocomotionConfig
 from pnp.training.models import make_models

@@ -6,7 +6,7 @@ from torchrl.envs.utils import check_env_specs
 
 from pnp.envs.pnp_env import PnPEnv
 from pnp.task import ACTION_HIGH, ACTION_LOW, OBS_BLOCKS, OBS_FIELDS
-from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.task.terms import CONDITIONS, REWARD_TERMS
 
 
 def _env(n=4, robots=1, seed=0):

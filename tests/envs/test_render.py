@@ -13,7 +13,7 @@ import render as render_recipe  # noqa: E402
 
 def test_render_frame_shows_the_scene():
     try:
-        from pnp.render import WorldRenderer
+        from pnp.sim.render import WorldRenderer
 
         env = PnPEnv(num_worlds=1, nthread=1)
         r = WorldRenderer(env.backend, 0, width=96, height=64)
@@ -28,7 +28,7 @@ def test_render_frame_shows_the_scene():
 def test_render_a_trained_checkpoint(tmp_path):
     pytest.importorskip("imageio")
     try:
-        from pnp.render import WorldRenderer
+        from pnp.sim.render import WorldRenderer
 
         WorldRenderer(PnPEnv(num_worlds=1, nthread=1).backend, 0, width=32, height=32).close()
     except Exception as e:  # noqa: BLE001

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
-from pnp.scripted import ScriptedPnP
+from pnp.task.scripted import ScriptedPnP
 
 
 @pytest.mark.parametrize("robots", [1, pytest.param(2, marks=pytest.mark.slow)])

@@ -3,9 +3,9 @@ import math
 
 import torch
 
-from pnp.backend import Layout
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.robot import STANDING_HEIGHT
+from pnp.sim.backend import Layout
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.sim.robot import STANDING_HEIGHT
 from pnp.task import geometry
 
 

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import torch
 
-from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
-from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
-from pnp.scene import GOAL_RADIUS
+from pnp.sim.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
+from pnp.sim.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE
+from pnp.sim.scene import GOAL_RADIUS
 from pnp.task import (
     ACTION_HIGH, ACTION_LOW, FALL_HEIGHT, FOOTPRINT_HALF, GRASP_DIST, LIFT_HEIGHT, MAX_OBJ_HEIGHT, OBS_BLOCKS, ON_FLOOR, READY_ALIGN,
     READY_XY, READY_Z, Geometry, PnPState,
 )
-from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
+from pnp.task.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
 
 def yaw_rotation(yaw: torch.Tensor) -> torch.Tensor:
@@ -89,7 +89,7 @@ def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
     dz = -g.ee_handle[..., 2]  # EE above the handle axis
     ready = (g.ee_handle[..., :2].norm(dim=-1) < READY_XY) & (dz > READY_Z[0]) & (dz < READY_Z[1]) & (g.align > READY_ALIGN)
     if R == 2:
-        ready = ready | g.grasped  # two robots: a held handle counts as ready (ours, see pnp.task_conditions)
+        ready = ready | g.grasped  # two robots: a held handle counts as ready (ours, see pnp.task.conditions)
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731  shared box conditions
     lifted = g.grasped & box(g.box_lift > LIFT_HEIGHT)
     on_goal = lifted & box(g.box_in_goal)
@@ -101,7 +101,7 @@ def stage_conditions(s: PnPState, g: Geometry) -> torch.Tensor:
 
 
 def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.terms.REWARD_TERMS``."""
+    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.task.terms.REWARD_TERMS``."""
     R = s.ee_pos.shape[1]
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731
     p = s.grasp_cmd

@@ -7,10 +7,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from pnp.arm_gravity import ArmGravity
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, Quadruped
-from pnp.scene import PnPArena, build_scene
+from pnp.legs.arm_gravity import ArmGravity
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.sim.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, Quadruped
+from pnp.sim.scene import PnPArena, build_scene
 
 G = 9.81
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from pnp.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
-from pnp.layout import MIN_ROBOT_BOX, MIN_ROBOT_ROBOT, SCALE_RANGE, START_RANGE, sample_layout
-from pnp.physics import BatchedPhysics
-from pnp.scene import build_scene
+from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
+from pnp.sim.layout import MIN_ROBOT_BOX, MIN_ROBOT_ROBOT, SCALE_RANGE, START_RANGE, sample_layout
+from pnp.sim.physics import BatchedPhysics
+from pnp.sim.scene import build_scene
 
 
 def _inertia_matrix(m, b):

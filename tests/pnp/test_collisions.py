@@ -1,4 +1,4 @@
-"""The collision proxy (pnp.task._collisions): footprint rectangles against the box and each other."""
+"""The collision proxy (pnp.task.collisions): footprint rectangles against the box and each other."""
 import math
 
 import torch
@@ -23,7 +23,7 @@ def _state(bases, box_xy_yaw, box_size=(1.5, 0.45, 0.35)) -> PnPState:
 
 def test_robot_box_overlap_follows_the_rectangles():
     fx, fy = T.FOOTPRINT_HALF
-    hit = lambda *box: T._collisions(_state([[0.0, 0.0, 0.0]], box))[0, 0].item()  # noqa: E731
+    hit = lambda *box: T.collisions(_state([[0.0, 0.0, 0.0]], box))[0, 0].item()  # noqa: E731
     assert hit(fx + 0.75 - 0.01, 0.0, 0.0) == 1.0 and hit(fx + 0.75 + 0.01, 0.0, 0.0) == 0.0
     # Turned 90 degrees the 1.5 m box is 0.45 m deep along x: a robot fits much closer.
     assert hit(fx + 0.225 + 0.01, 0.0, math.pi / 2) == 0.0 and hit(fx + 0.2, 0.0, math.pi / 2) == 1.0
@@ -31,13 +31,13 @@ def test_robot_box_overlap_follows_the_rectangles():
     assert hit(0.0, fy + 0.225 + 0.01, 0.0) == 0.0
     # A 45-degree box whose corner points at the robot's corner: bounding boxes overlap, shapes do not.
     corner = (fx + 0.25, fy + 0.25, math.pi / 4)
-    assert T._collisions(_state([[0.0, 0.0, 0.0]], corner, (0.4, 0.4, 0.3)))[0, 0] == 0.0
+    assert T.collisions(_state([[0.0, 0.0, 0.0]], corner, (0.4, 0.4, 0.3)))[0, 0] == 0.0
 
 
 def test_robot_robot_overlap_is_symmetric():
     fx, fy = T.FOOTPRINT_HALF
     far_box = (10.0, 10.0, 0.0)
-    side = lambda gap: T._collisions(_state([[0.0, 0.0, 0.0], [0.0, 2 * fy + gap, 0.0]], far_box))[0]  # noqa: E731
+    side = lambda gap: T.collisions(_state([[0.0, 0.0, 0.0], [0.0, 2 * fy + gap, 0.0]], far_box))[0]  # noqa: E731
     assert side(0.05).tolist() == [0.0, 0.0] and side(-0.05).tolist() == [1.0, 1.0]
-    crossed = T._collisions(_state([[0.0, 0.0, 0.0], [fx + fy - 0.05, 0.0, math.pi / 2]], far_box))[0]
+    crossed = T.collisions(_state([[0.0, 0.0, 0.0], [fx + fy - 0.05, 0.0, math.pi / 2]], far_box))[0]
     assert crossed.tolist() == [1.0, 1.0]

@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
-from pnp.executor import IdealExecutor
-from pnp.robot import FINGER_STROKE
-from pnp.scripted import ScriptedPnP
+from pnp.sim.executor import IdealExecutor
+from pnp.sim.robot import FINGER_STROKE
+from pnp.task.scripted import ScriptedPnP
 from pnp.task import geometry
 from tests.pnp._kinematic_helpers import _action
 

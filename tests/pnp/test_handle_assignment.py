@@ -82,7 +82,7 @@ def test_a_claimed_handle_stays_its_claimers():
 
 def test_env_claims_stay_distinct_under_the_scripted_pair():
     from envs.pnp_env import PnPEnv
-    from pnp.scripted import ScriptedPnP
+    from pnp.task.scripted import ScriptedPnP
 
     env = PnPEnv(num_worlds=4, num_robots=2, backend="kinematic", seed=0, nthread=1, handle_claim=True)
     pol, td = ScriptedPnP(4, 2), env.reset()

@@ -7,10 +7,10 @@ import torch
 from pnp.envs.pnp_env import PnPEnv
 from torchrl.envs.utils import check_env_specs
 
-from pnp.kinematic import KinematicBackend, arm_fk, arm_ik
-from pnp.kinematics import REACH_MAX, ArmKinematics, clamp_reach, gripper_down_rotation
-from pnp.robot import ARM_DEFAULT, STANDING_HEIGHT
-from pnp.scripted import ScriptedPnP
+from pnp.kinematic.backend import KinematicBackend, arm_fk, arm_ik
+from pnp.sim.arm_ik import REACH_MAX, ArmKinematics, clamp_reach, gripper_down_rotation
+from pnp.sim.robot import ARM_DEFAULT, STANDING_HEIGHT
+from pnp.task.scripted import ScriptedPnP
 from pnp.task import ACTION_HIGH, ACTION_LOW, HL_DT
 from tests.pnp._kinematic_helpers import _action, _layout, _to_world
 

@@ -1,13 +1,13 @@
-"""The kinematic model's robot-box pushes (pnp.kinematic_contact), on hand-made states."""
+"""The kinematic model's robot-box pushes (pnp.kinematic.contact), on hand-made states."""
 import math
 
 import pytest
 import torch
 
-from pnp.box import HANDLE_RADIUS
-from pnp.kinematic_contact import MAX_PUSH, clamp_push, leg_push, pad_push
-from pnp.robot import PAD_HALF
-from pnp.task_geometry import FOOTPRINT_HALF
+from pnp.sim.box import HANDLE_RADIUS
+from pnp.kinematic.contact import MAX_PUSH, clamp_push, leg_push, pad_push
+from pnp.sim.robot import PAD_HALF
+from pnp.task.geometry import FOOTPRINT_HALF
 
 
 def _box(x=0.0, y=0.0, yaw=0.0, size=(0.4, 0.3, 0.2), hx=0.25, half_len=0.1, hz=0.15):

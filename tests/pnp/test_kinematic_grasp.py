@@ -6,12 +6,12 @@ import pytest
 import torch
 from pnp.envs.pnp_env import PnPEnv
 
-from pnp.box import DUAL_ROBOT_BOXES, HANDLE_RADIUS, SINGLE_ROBOT_BOXES
-from pnp.kinematic import KinematicBackend
-from pnp.robot import FINGER_STROKE
-from pnp.scripted import ScriptedPnP
+from pnp.sim.box import DUAL_ROBOT_BOXES, HANDLE_RADIUS, SINGLE_ROBOT_BOXES
+from pnp.kinematic.backend import KinematicBackend
+from pnp.sim.robot import FINGER_STROKE
+from pnp.task.scripted import ScriptedPnP
 from pnp.task import FOOTPRINT_HALF, rects_overlap
-from pnp.terms import CONDITIONS
+from pnp.task.terms import CONDITIONS
 from tests.pnp._kinematic_helpers import (
     _action,
     _grasped,

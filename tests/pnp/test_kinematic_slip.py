@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.kinematic import KinematicBackend
-from pnp.kinematic_step import kinematic_step
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.kinematic.backend import KinematicBackend
+from pnp.kinematic.step import kinematic_step
 from tests.pnp._kinematic_helpers import _action, _handle_z_base, _layout, _steps
 
 BOX = SINGLE_ROBOT_BOXES[0]

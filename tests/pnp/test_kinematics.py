@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.kinematics import ArmKinematics, gripper_yaw
-from pnp.robot import STANDING_HEIGHT
-from pnp.scene import build_scene
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.sim.arm_ik import ArmKinematics, gripper_yaw
+from pnp.sim.robot import STANDING_HEIGHT
+from pnp.sim.scene import build_scene
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
-"""PnP on legs: the closed-loop low level (pnp.legged_backend) with hand-made leg policies."""
+"""PnP on legs: the closed-loop low level (pnp.legs.backend) with hand-made leg policies."""
 import math
 
 import pytest
 import torch
 
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.locomotion import LOCO_OBS_DIM, LOCO_OBS_FIELDS, LegServo
-from pnp.legged_backend import LeggedMujocoBackend
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.legs.locomotion import LOCO_OBS_DIM, LOCO_OBS_FIELDS, LegServo
+from pnp.legs.backend import LeggedMujocoBackend
 from tests.pnp._kinematic_helpers import _action, _layout
 
 BOX = SINGLE_ROBOT_BOXES[0]

@@ -3,14 +3,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from pnp.arm_gravity import ArmGravity
-from pnp.box import SINGLE_ROBOT_BOXES, HandleBox
-from pnp.locomotion import LegServo
-from pnp.robot import (
+from pnp.legs.arm_gravity import ArmGravity
+from pnp.sim.box import SINGLE_ROBOT_BOXES, HandleBox
+from pnp.legs.locomotion import LegServo
+from pnp.sim.robot import (
     ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, LEG_JOINTS, LEG_KD, LEG_KP, LEG_MASS, LEG_SPEED, LEG_TORQUE,
     LEGGED_STAND_HEIGHT, STANDING_HEIGHT, TRUNK_MASS, Quadruped, leg_ranges, stand_pose,
 )
-from pnp.scene import PnPArena, build_scene
+from pnp.sim.scene import PnPArena, build_scene
 
 RIGID_JOINTS = ["base_x", "base_y", "base_yaw", *ARM_JOINTS, "finger_l", "finger_r"]
 

@@ -10,9 +10,9 @@ import torch
 
 import pnp.task as T
 from pnp.envs.pnp_env import BLOCKS, PnPEnv
-from pnp.scripted import ScriptedPnP
+from pnp.task.scripted import ScriptedPnP
 from pnp.task import ACTION_HIGH, ACTION_LOW, PnPState
-from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.task.terms import CONDITIONS, REWARD_TERMS
 from tests.pnp import _task_reference as REF
 
 ATOL, RTOL = 1e-5, 1e-5  # float32; rewards reach ~100
@@ -36,7 +36,7 @@ def _compare(s: PnPState, action, last_action, out=None):
     _close(T.to_base(s, s.ee_pos), REF.to_base(s, s.ee_pos), "to_base")
     h = T.handles(s).unsqueeze(1).expand(-1, s.ee_pos.shape[1], -1, -1)
     _close(T.to_base(s, h), REF.to_base(s, h), "to_base [N, R, 2, 3]")
-    _close(T._collisions(s), REF._collisions(s), "_collisions")
+    _close(T.collisions(s), REF._collisions(s), "collisions")
     cond = T.stage_conditions(s, g)
     _close(cond, REF.stage_conditions(s, g_ref), "stage_conditions")
     terms = T.reward_terms(s, g, action, last_action, cond)

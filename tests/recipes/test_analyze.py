@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 
 from pnp.task import OBS_FIELDS
-from pnp.terms import CONDITIONS
+from pnp.task.terms import CONDITIONS
 
 from tests.training._tiny import ROOT, tiny_train
 

@@ -35,8 +35,8 @@ import pytest
 import torch
 
 import pnp.envs.pnp_env as pnp_env
-from pnp.box import HANDLE_INSET
-from pnp.layout import START_RANGE, sample_layout
+from pnp.sim.box import HANDLE_INSET
+from pnp.sim.layout import START_RANGE, sample_layout
 from tests.training._tiny import tiny_train
 
 THRESHOLD = 0.23

@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from pnp.stage_graph import pnp_default_reward_config
+from pnp.task.stage_graph import pnp_default_reward_config
 from pnp.training.collect import episode_metrics
 from pnp.training.config import register
 from pnp.training.pipeline import phase_config

@@ -15,7 +15,7 @@ from tensordict import TensorDict
 
 from pnp.losses.erskine import CooperativeMAPPOLoss
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.terms import REWARD_TABLE, REWARD_TERMS, STAGE_GATES, TERM_STAGE
+from pnp.task.terms import REWARD_TABLE, REWARD_TERMS, STAGE_GATES, TERM_STAGE
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.keys import OBS, STAGE_ONE_HOT
 from pnp.training.pipeline import load_state

@@ -7,8 +7,8 @@ import torch
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from pnp.box import DUAL_ROBOT_BOXES
-from pnp.terms import CONDITIONS
+from pnp.sim.box import DUAL_ROBOT_BOXES
+from pnp.task.terms import CONDITIONS
 from pnp.training.config import changed_settings, migrate
 from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy

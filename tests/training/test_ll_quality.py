@@ -4,16 +4,16 @@ import sys
 import pytest
 import torch
 
-from pnp.backend import MujocoBackend
-from pnp.box import SINGLE_ROBOT_BOXES
+from pnp.sim.backend import MujocoBackend
+from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import LocomotionEnv
-from pnp.legged_backend import LeggedMujocoBackend
-from pnp.robot import LEG_TORQUE, leg_ranges
+from pnp.legs.backend import LeggedMujocoBackend
+from pnp.sim.robot import LEG_TORQUE, leg_ranges
 from pnp.training.config import LocomotionConfig
 from pnp.training.ll_quality import (
     Saturation, command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking,
 )
-from pnp.locomotion import STAND, LegServo
+from pnp.legs.locomotion import STAND, LegServo
 from tests.training._tiny import ROOT, compose_cfg
 
 sys.path.insert(0, str(ROOT / "recipes"))

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
-from pnp.legged_backend import LeggedMujocoBackend
-from pnp.locomotion import LOCO_OBS_DIM, LegServo
+from pnp.legs.backend import LeggedMujocoBackend
+from pnp.legs.locomotion import LOCO_OBS_DIM, LegServo
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.tasks import make_env, schedule_of
@@ -95,7 +95,7 @@ def test_a_teacher_is_rendered_walking(locomotion_run, pnp_run, tmp_path):
     import render as render_recipe
 
     try:
-        from pnp.render import WorldRenderer
+        from pnp.sim.render import WorldRenderer
 
         WorldRenderer(PnPEnv(num_worlds=1, nthread=1).backend, 0, width=32, height=32).close()
     except Exception as e:  # noqa: BLE001 - any GL failure means no offscreen context here

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
-from pnp.layout import paired_layouts
-from pnp.scripted import ScriptedPnP
+from pnp.sim.layout import paired_layouts
+from pnp.task.scripted import ScriptedPnP
 from pnp.training.rollout import run_trials, summarise
 from pnp.training.tasks import make_env
 from tests.training._tiny import compose_cfg
@@ -44,7 +44,7 @@ def test_trial_layouts_do_not_depend_on_world_count_or_reset_order():
 
 
 def test_paired_layouts_are_a_function_of_seed_and_trial():
-    from pnp.box import SINGLE_ROBOT_BOXES
+    from pnp.sim.box import SINGLE_ROBOT_BOXES
 
     one = paired_layouts(5, torch.tensor([4, 0, 9]), 1, SINGLE_ROBOT_BOXES)
     two = paired_layouts(5, torch.tensor([9, 4]), 1, SINGLE_ROBOT_BOXES)
@@ -75,7 +75,7 @@ def test_one_policy_meets_the_same_trials_with_32_and_100_worlds():
 
 
 def test_box_mass_is_an_evaluation_condition_on_the_same_trials():
-    from pnp.box import SINGLE_ROBOT_BOXES
+    from pnp.sim.box import SINGLE_ROBOT_BOXES
 
     plain = paired_layouts(3, torch.arange(5), 1, SINGLE_ROBOT_BOXES)
     heavy = paired_layouts(3, torch.arange(5), 1, SINGLE_ROBOT_BOXES, box_mass=(2.0, 2.0))

@@ -10,7 +10,7 @@ import sys
 import pytest
 import torch
 
-from pnp.scripted import ScriptedPnP
+from pnp.task.scripted import ScriptedPnP
 from pnp.training.distill import distill
 from pnp.training.distill_config import register
 from pnp.training.keys import OBS

@@ -9,8 +9,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from pnp.scripted import ScriptedPnP
-from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.task.scripted import ScriptedPnP
+from pnp.task.terms import CONDITIONS, REWARD_TERMS
 from pnp.training.keys import ACTION
 from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
 from pnp.training.student import add_observation_noise

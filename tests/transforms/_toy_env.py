@@ -17,8 +17,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 
-from pnp.stage_graph import pnp_default_reward_config, pnp_default_stage_graph
-from pnp.terms import CONDITIONS, REWARD_TERMS
+from pnp.task.stage_graph import pnp_default_reward_config, pnp_default_stage_graph
+from pnp.task.terms import CONDITIONS, REWARD_TERMS
 from pnp.transforms import StageTransition, make_reward_schedule
 
 

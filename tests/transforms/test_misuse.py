@@ -10,7 +10,7 @@ from tensordict import TensorDict
 from torchrl.data import Composite
 from torchrl.envs import TransformedEnv
 
-from pnp.stage_graph import pnp_default_stage_graph
+from pnp.task.stage_graph import pnp_default_stage_graph
 from pnp.transforms import StageTransition
 
 from ._toy_env import ToyStageEnv

@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 from torchrl.envs import Compose, TransformedEnv
 
-from pnp.stage_graph import StageGraph, pnp_default_reward_config
-from pnp.terms import REWARD_TERMS
+from pnp.task.stage_graph import StageGraph, pnp_default_reward_config
+from pnp.task.terms import REWARD_TERMS
 from pnp.transforms import (
     AdaptiveRewardScaling,
     FixedScales,

@@ -7,8 +7,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnp.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
-from pnp.terms import CONDITIONS, REWARD_TERMS, STAGES
+from pnp.task.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
+from pnp.task.terms import CONDITIONS, REWARD_TERMS, STAGES
 
 ALL, NONE = torch.ones(7, 6, dtype=torch.bool), torch.zeros(7, 6, dtype=torch.bool)
 

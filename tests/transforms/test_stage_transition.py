@@ -5,7 +5,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 
-from pnp.stage_graph import pnp_default_stage_graph
+from pnp.task.stage_graph import pnp_default_stage_graph
 from pnp.transforms import StageTransition
 
 from ._toy_env import ToyStageEnv

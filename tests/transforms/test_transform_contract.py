@@ -19,7 +19,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from pnp.terms import REWARD_TERMS
+from pnp.task.terms import REWARD_TERMS
 from pnp.transforms import StageRewardSchedule, StageTransition
 
 from ._toy_env import make_curriculum, make_pnp_toy_env, make_transformed

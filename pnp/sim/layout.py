@@ -8,8 +8,8 @@ import math
 import numpy as np
 import torch
 
-from pnp.backend import Layout
-from pnp.box import BoxAsset
+from pnp.sim.backend import Layout
+from pnp.sim.box import BoxAsset
 
 START_RANGE = (0.6, 5.0)  # m from the goal
 SCALE_RANGE = (0.8, 1.2)

@@ -4,7 +4,7 @@ Built from primitives with published numbers (see ``../shared/DESIGN.md``; sourc
 ANYbotics ANYmal D and DynaArm data sheets, Robotiq 2F-140 manual). Numbers marked
 "ours" are not published and were chosen for a plausible, stable model.
 
-With the ideal low-level executor (``pnp.executor``) the trunk rides on actuated
+With the ideal low-level executor (``pnp.sim.executor``) the trunk rides on actuated
 planar joints (x, y, yaw) at the standing height and the legs are rigid geometry,
 shown in the standing pose; they collide with the box but not with the floor.
 
@@ -21,7 +21,7 @@ both variants.
 """
 from __future__ import annotations
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
 
 import itertools
 
@@ -142,7 +142,7 @@ class Quadruped(composer.Entity):
         # Actuated: the free joint goes on the attachment frame (create_root_joints).
         base = root.worldbody.add("body", name="base", pos=(0, 0, STANDING_HEIGHT if rigid else 0.0))
         if rigid:
-            # Ideal executor: planar joints, velocity-actuated (see pnp.executor).
+            # Ideal executor: planar joints, velocity-actuated (see pnp.sim.executor).
             for jn, typ, axis in (("base_x", "slide", (1, 0, 0)), ("base_y", "slide", (0, 1, 0)), ("base_yaw", "hinge", (0, 0, 1))):
                 base.add("joint", name=jn, type=typ, axis=axis, damping=0.0, armature=1.0)
         trunk = base.add("geom", name="trunk", type="box", size=TRUNK_HALF, mass=TRUNK_MASS)
@@ -165,7 +165,7 @@ class Quadruped(composer.Entity):
                 "position", name=jn, joint=jn, kp=600.0, kv=40.0, ctrlrange=(lo, hi), ctrllimited=True,
                 forcerange=(-ARM_TORQUE, ARM_TORQUE), forcelimited=True,
             )
-        if not rigid:  # the arm controller's gravity feed-forward (pnp.arm_gravity), unlimited as gravcomp
+        if not rigid:  # the arm controller's gravity feed-forward (pnp.legs.arm_gravity), unlimited as gravcomp
             for jn in ARM_JOINTS:
                 root.actuator.add("motor", name=f"{jn}_ff", joint=jn, gear=(1,))
         for fn in ("finger_l", "finger_r"):

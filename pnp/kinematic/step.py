@@ -1,4 +1,4 @@
-"""One HL step of the kinematic backend's worlds (``pnp.kinematic``, whose docstring
+"""One HL step of the kinematic backend's worlds (``pnp.kinematic.backend``, whose docstring
 describes the model): :func:`kinematic_step`, a pure function of the backend's state dict
 and the action, with the model's constants (:class:`KinematicParams`)."""
 from __future__ import annotations
@@ -8,12 +8,12 @@ from dataclasses import dataclass
 
 import torch
 
-from pnp.arm_closed_form import EE_TO_WRIST, arm_fk_columns, ik_wrist, wrap_angle, wrist_in_reach
-from pnp.box import HANDLE_RADIUS
-from pnp.kinematic_contact import clamp_push, leg_push, pad_push
-from pnp.robot import ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
-from pnp.task_geometry import FOOTPRINT_HALF, GRASP_DIST, rects_overlap
-from pnp.task_state import HL_DT
+from pnp.sim.arm_closed_form import EE_TO_WRIST, arm_fk_columns, ik_wrist, wrap_angle, wrist_in_reach
+from pnp.sim.box import HANDLE_RADIUS
+from pnp.kinematic.contact import clamp_push, leg_push, pad_push
+from pnp.sim.robot import ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
+from pnp.task.geometry import FOOTPRINT_HALF, GRASP_DIST, rects_overlap
+from pnp.task.state import HL_DT
 
 GRAVITY = 9.81  # m/s^2
 EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
@@ -35,7 +35,7 @@ _Q6_WIND = ARM_RANGES[5][1] - 0.1  # flip the gripper's half-turn choice before 
 
 @dataclass(frozen=True)
 class KinematicParams:
-    """Constants of the kinematic model (``pnp.kinematic`` describes it)."""
+    """Constants of the kinematic model (``pnp.kinematic.backend`` describes it)."""
 
     dt: float = HL_DT
     ee_tau: float = EE_TAU
@@ -46,7 +46,7 @@ class KinematicParams:
     box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
     grasp_holds: bool = False  # True: two robots; a closed gripper keeps its bar, its EE follows the grasp point
     slip: bool = False  # True: one robot; a lifted box slips out at MuJoCo's measured rates (SLIP_LOGIT)
-    box_pushed: bool = False  # True: legs and pads shove a resting box (pnp.kinematic_contact)
+    box_pushed: bool = False  # True: legs and pads shove a resting box (pnp.kinematic.contact)
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -60,7 +60,7 @@ class KinematicParams:
 def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: KinematicParams,
                    uniform: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """One HL step of every world: a pure function of the state dict (see
-    ``pnp.kinematic.KinematicBackend``), the clipped action [N, R, 8] and, with ``p.slip``,
+    ``pnp.kinematic.backend.KinematicBackend``), the clipped action [N, R, 8] and, with ``p.slip``,
     uniform draws [N, R] in [0, 1) for the slips; returns the new state dict."""
     dt = p.dt
     alpha = 1.0 - math.exp(-dt / p.ee_tau) if p.ee_tau > 0 else 1.0

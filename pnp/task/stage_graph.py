@@ -13,7 +13,7 @@ from typing import Sequence, Union
 
 import torch
 
-from pnp.terms import (
+from pnp.task.terms import (
     CONDITIONS,
     FIXED_TERMS,
     REWARD_TABLE,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before dm_control loads
 
 import numpy as np
 from dm_control import composer, mjcf
@@ -103,7 +103,7 @@ def _capsule_y_inertia(m, r, hl):
 def box_geometry(asset: BoxAsset, geom_names: list[str]) -> dict[str, np.ndarray]:
     """Per-geom size, pos, rbound, aabb and the body's mass, com and inertia for ``asset``.
 
-    Lets one compiled model be resized per world (``pnp.physics``) without recompiling;
+    Lets one compiled model be resized per world (``pnp.sim.physics``) without recompiling;
     the tests compare it with a model compiled from that asset.
     """
     a, b, c = asset.size

@@ -1,7 +1,7 @@
 """Simulation backends behind the PnP environment, and the episode layout they reset to.
 
 A backend owns the physical state of N worlds and exposes it as a :class:`PnPState`.
-:class:`MujocoBackend` steps real physics; the kinematic backend (``pnp.kinematic``)
+:class:`MujocoBackend` steps real physics; the kinematic backend (``pnp.kinematic.backend``)
 implements the same interface in pure torch.
 """
 from __future__ import annotations
@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pnp.box import BoxAsset
-from pnp.executor import IdealExecutor, LowLevelExecutor
-from pnp.kinematics import ArmKinematics
-from pnp.physics import BatchedPhysics
-from pnp.robot import ARM_DEFAULT, FINGER_STROKE, STANDING_HEIGHT
-from pnp.scene import PHYSICS_DT, build_scene
+from pnp.sim.box import BoxAsset
+from pnp.sim.executor import IdealExecutor, LowLevelExecutor
+from pnp.sim.arm_ik import ArmKinematics
+from pnp.sim.physics import BatchedPhysics
+from pnp.sim.robot import ARM_DEFAULT, FINGER_STROKE, STANDING_HEIGHT
+from pnp.sim.scene import PHYSICS_DT, build_scene
 from pnp.task import HL_DT, PnPState, yaw_rotation
 
 BOX_DROP = 0.002  # m: a box is set down this far above the floor, never into it

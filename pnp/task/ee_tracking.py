@@ -12,14 +12,14 @@ import math
 
 import torch
 
-from pnp.backend import Layout
-from pnp.box import SINGLE_ROBOT_BOXES
-from pnp.kinematic import arm_fk
-from pnp.layout import _ring
-from pnp.robot import ARM_DEFAULT, STANDING_HEIGHT
-from pnp.stage_graph import StageGraph
+from pnp.sim.backend import Layout
+from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.kinematic.backend import arm_fk
+from pnp.sim.layout import _ring
+from pnp.sim.robot import ARM_DEFAULT, STANDING_HEIGHT
+from pnp.task.stage_graph import StageGraph
 from pnp.task import OBS_FIELDS, BaseFrame, PnPState, action_rate, ego_block, joint_limit_excess
-from pnp.terms import TERM_MU, RewardTerm
+from pnp.task.terms import TERM_MU, RewardTerm
 
 N_POINTS = 4
 EE_STAGES = ("start", "point_1", "point_2", "point_3", "point_4")
@@ -31,12 +31,12 @@ TOUCH_TOL = 0.08  # m
 # Point sampling, around the robot's start (world origin): far enough that the robot must
 # walk (its EE starts 0.75 m ahead), near enough to finish in a fraction of the episode.
 POINT_RING = (0.8, 3.0)  # m, horizontal distance from the start
-# m above the floor. The arm (closed-form IK, pnp.kinematic) reaches 0.15 m over a 0.3-1.0 m
+# m above the floor. The arm (closed-form IK, pnp.kinematic.backend) reaches 0.15 m over a 0.3-1.0 m
 # band of base-frame x and 0.85 m over 0.86-0.99 m; above ~0.9 m the band closes (wrist
 # pitch limit); 0.15 m keeps the pads (3.5 cm below the EE site) well clear of the floor.
 POINT_HEIGHT = (0.15, 0.85)
 MIN_GAP = 0.5  # m between successive points (and from the start EE to point 1)
-# 20 s (the paper gives none for this ablation): the scripted policy (pnp.ee_scripted)
+# 20 s (the paper gives none for this ablation): the scripted policy (pnp.task.ee_scripted)
 # needs a median 9-10 s and at most ~15 s (4 points ~2 m apart, walking at <= 1 m/s plus
 # turning); twice the median leaves a learner room while every episode stays finishable.
 EPISODE_S = 20.0

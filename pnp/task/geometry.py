@@ -7,15 +7,15 @@ from dataclasses import dataclass
 
 import torch
 
-from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
-from pnp.scene import GOAL_RADIUS
-from pnp.task_state import PnPState
+from pnp.sim.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
+from pnp.sim.scene import GOAL_RADIUS
+from pnp.task.state import PnPState
 
 ON_FLOOR = 0.03  # m, box bottom below this counts as on the floor
 GRASP_DIST = 0.035  # m, EE to the handle bar for a grasp
 FALL_HEIGHT = 0.35  # m, base below this counts as a fall
 # Half extents (base x, y) of a robot's standing footprint, trunk and legs: feet at
-# x = +-0.41 m, leg capsules to y = +-0.16 m (pnp.robot), plus ~4 cm of margin.
+# x = +-0.41 m, leg capsules to y = +-0.16 m (pnp.sim.robot), plus ~4 cm of margin.
 FOOTPRINT_HALF = (0.45, 0.20)
 
 

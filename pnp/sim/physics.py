@@ -9,13 +9,13 @@ from __future__ import annotations
 import copy
 import os
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
 import mujoco
 import numpy as np
 from mujoco import rollout
 
-from pnp.box import BoxAsset, box_geometry
+from pnp.sim.box import BoxAsset, box_geometry
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CTRL = mujoco.mjtState.mjSTATE_CTRL

@@ -13,8 +13,8 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from pnp.kinematics import ArmKinematics, clamp_reach, gripper_yaw, wrap_angle
-from pnp.robot import ARM_SPEED, FINGER_STROKE
+from pnp.sim.arm_ik import ArmKinematics, clamp_reach, gripper_yaw, wrap_angle
+from pnp.sim.robot import ARM_SPEED, FINGER_STROKE
 
 LL_DT = 0.02  # s, LL policy at 50 Hz
 

@@ -1,11 +1,11 @@
 """Closed-form kinematics of the DynaArm-like arm with a downward gripper (wrist roll j4 = 0):
 FK, IK and the reachable shell of the wrist centre, exact for a downward gripper (tests
-compare them with ``pnp.kinematics.ArmKinematics.fk``). The kinematic backend
-(``pnp.kinematic``, whose docstring says why closed form) moves its arms with these.
+compare them with ``pnp.sim.arm_ik.ArmKinematics.fk``). The kinematic backend
+(``pnp.kinematic.backend``, whose docstring says why closed form) moves its arms with these.
 
 :func:`arm_fk` and :func:`arm_ik` are the plain forms; :func:`arm_fk_columns`,
 :func:`wrist_in_reach` and :func:`ik_wrist` the same maths on structure-of-arrays columns,
-as the backend's step uses them (``pnp.kinematic_step`` says why).
+as the backend's step uses them (``pnp.kinematic.step`` says why).
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import math
 
 import torch
 
-from pnp.kinematics import L1, L2, LW, REACH_MAX, REACH_MIN, SHOULDER
-from pnp.robot import STANDING_HEIGHT
+from pnp.sim.arm_ik import L1, L2, LW, REACH_MAX, REACH_MIN, SHOULDER
+from pnp.sim.robot import STANDING_HEIGHT
 
 EE_TO_WRIST = torch.tensor([-SHOULDER[0], -SHOULDER[1], LW - SHOULDER[2]])  # EE -> wrist centre rel. to the shoulder
 
@@ -46,7 +46,7 @@ def _zyx_rotation(psi, beta, gamma):
 
 def arm_ik(ee: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     """Closed-form IK [..., 6] for an EE at ``ee`` (base frame, within reach) pointing
-    down with gripper yaw ``yaw`` (as in ``pnp.kinematics.gripper_down_rotation``)."""
+    down with gripper yaw ``yaw`` (as in ``pnp.sim.arm_ik.gripper_down_rotation``)."""
     dx, dy = ee[..., 0] - SHOULDER[0], ee[..., 1] - SHOULDER[1]
     q1 = torch.atan2(dy, dx)
     dr = torch.sqrt(dx * dx + dy * dy)

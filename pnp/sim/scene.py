@@ -1,20 +1,20 @@
 """Arena and scene assembly: floor, goal marker, one or two robots and a box.
 
 The scene is built once with dm_control composer Entities and compiled to a plain
-``mujoco.MjModel``; batched stepping happens in ``pnp.physics``.
+``mujoco.MjModel``; batched stepping happens in ``pnp.sim.physics``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
 import mujoco
 import numpy as np
 from dm_control import composer, mjcf
 
-from pnp.box import BoxAsset, HandleBox
-from pnp.robot import ARM_JOINTS, Quadruped
+from pnp.sim.box import BoxAsset, HandleBox
+from pnp.sim.robot import ARM_JOINTS, Quadruped
 
 PHYSICS_DT = 0.005  # s, 200 Hz (paper: physics at 200 Hz or faster)
 GOAL_RADIUS = 0.5  # m, success radius (paper)

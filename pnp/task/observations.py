@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from pnp.robot import FINGER_STROKE
-from pnp.task_geometry import BaseFrame, Geometry, handles, stack_columns
-from pnp.task_state import PnPState
+from pnp.sim.robot import FINGER_STROKE
+from pnp.task.geometry import BaseFrame, Geometry, handles, stack_columns
+from pnp.task.state import PnPState
 
 # Order of the two handles in the object block (``own_*`` are ours, not the paper's):
 # ``identity`` handle 0 then 1; ``own_first`` / ``own_last`` the robot's handle (geometry's)
@@ -55,7 +55,7 @@ def observations(s: PnPState, g: Geometry, last_action: torch.Tensor, frame: Bas
     """Named observation blocks [N, R, k] (sizes in :data:`OBS_BLOCKS`).
 
     ``handle_order``: ``identity`` lists handle 0 then 1; ``own_first`` / ``own_last`` list
-    the robot's handle (``pnp.task_geometry.geometry``'s, the one its handle terms reward)
+    the robot's handle (``pnp.task.geometry.geometry``'s, the one its handle terms reward)
     first / last (see :data:`HANDLE_ORDERS`).
     """
     # Built from [N, R] / [N, 1] component columns, stacked once per block.

@@ -3,7 +3,7 @@ a learned locomotion policy drives in closed loop at 50 Hz.
 
 The high-level action is the same as on the planar robots: base velocity (body frame),
 EE pose, gripper. Each HL step (10 Hz) runs ``HL_DT / LL_DT`` low-level ticks; each tick
-reads the state, builds every robot's locomotion observation (``pnp.locomotion.observation``:
+reads the state, builds every robot's locomotion observation (``pnp.legs.locomotion.observation``:
 the HL base velocity as its command), asks the policy for leg actions and steps physics
 ``LL_DT / PHYSICS_DT`` substeps with the resulting joint targets. The arm and fingers
 follow the ideal executor's targets (IK on the trunk frame, rate-limited ramp), as in the
@@ -22,13 +22,13 @@ import mujoco
 import numpy as np
 import torch
 
-from pnp.backend import MujocoBackend, quat_to_matrix
-from pnp.box import BoxAsset
-from pnp.executor import LL_DT
-from pnp.locomotion import LOCO_OBS_DIM, STAND, LegServo, base_readouts, observation
-from pnp.arm_gravity import ArmGravity
-from pnp.robot import ARM_COMPENSATED, ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
-from pnp.scene import PHYSICS_DT, compose_scene
+from pnp.sim.backend import MujocoBackend, quat_to_matrix
+from pnp.sim.box import BoxAsset
+from pnp.sim.executor import LL_DT
+from pnp.legs.locomotion import LOCO_OBS_DIM, STAND, LegServo, base_readouts, observation
+from pnp.legs.arm_gravity import ArmGravity
+from pnp.sim.robot import ARM_COMPENSATED, ARM_JOINTS, LEG_JOINTS, LEGGED_STAND_HEIGHT
+from pnp.sim.scene import PHYSICS_DT, compose_scene
 from pnp.task import HL_DT
 
 LowLevelPolicy = Callable[[torch.Tensor], torch.Tensor]
@@ -83,7 +83,7 @@ def _index(model: mujoco.MjModel, num_robots: int) -> LeggedSceneIndex:
 
 
 class LeggedMujocoBackend(MujocoBackend):
-    """:class:`pnp.backend.MujocoBackend` on legs, the legs driven by ``policy`` (see module doc)."""
+    """:class:`pnp.sim.backend.MujocoBackend` on legs, the legs driven by ``policy`` (see module doc)."""
 
     def __init__(self, num_worlds: int, num_robots: int, box: BoxAsset, policy: LowLevelPolicy,
                  nthread: int | None = None, physics_dt: float = PHYSICS_DT, finger_speed: float | None = None,

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import torch
 
-from pnp.box import HANDLE_RADIUS
-from pnp.robot import PAD_HALF
-from pnp.task_geometry import FOOTPRINT_HALF
+from pnp.sim.box import HANDLE_RADIUS
+from pnp.sim.robot import PAD_HALF
+from pnp.task.geometry import FOOTPRINT_HALF
 
 # Each pad as three spheres along its width (it is 7 cm wide, 1.6 cm thick, 3 cm tall);
 # its vertical half height beyond the sphere radius is taken off the height gap.

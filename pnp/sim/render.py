@@ -1,12 +1,12 @@
-"""Offscreen rendering of one world of a :class:`pnp.backend.MujocoBackend` (CPU: EGL/Mesa)."""
+"""Offscreen rendering of one world of a :class:`pnp.sim.backend.MujocoBackend` (CPU: EGL/Mesa)."""
 from __future__ import annotations
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
 import mujoco
 import numpy as np
 
-from pnp.physics import FULL
+from pnp.sim.physics import FULL
 
 
 class WorldRenderer:

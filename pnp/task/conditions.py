@@ -1,12 +1,12 @@
-"""The stage-transition conditions of pick-and-place (``pnp.terms.CONDITIONS``), per robot,
+"""The stage-transition conditions of pick-and-place (``pnp.task.terms.CONDITIONS``), per robot,
 from the task geometry."""
 from __future__ import annotations
 
 import torch
 
-from pnp.task_geometry import Geometry
-from pnp.task_state import PnPState
-from pnp.terms import CONDITIONS
+from pnp.task.geometry import Geometry
+from pnp.task.state import PnPState
+from pnp.task.terms import CONDITIONS
 
 LIFT_HEIGHT = 0.1  # m, box bottom above the floor for "object lifted"
 READY_XY = 0.05  # m, EE horizontally within this of its handle for "gripper ready"

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import math
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before pytorch_kinematics loads mujoco
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before pytorch_kinematics loads mujoco
 
 import pytorch_kinematics as pk
 import pytorch_kinematics.mjcf as pk_mjcf
 import torch
 
-from pnp.robot import (
+from pnp.sim.robot import (
     ARM_DEFAULT, ARM_JOINTS, ARM_MOUNT, ARM_RANGES, FOREARM, GRIPPER_LEN, SHOULDER_HEIGHT, UPPER_ARM, WRIST, Quadruped,
 )
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from pnp.ee_task import EE_OBS_FIELDS, N_POINTS, TOUCH_TOL
+from pnp.task.ee_tracking import EE_OBS_FIELDS, N_POINTS, TOUCH_TOL
 from pnp.task import ACTION_HIGH, ACTION_LOW
 
 STAND_X = 0.9  # m: a base-frame x where every sampled height is reachable (see POINT_HEIGHT)

@@ -26,7 +26,7 @@ STAGES: tuple[str, ...] = (
 )
 
 # CONDITIONS[i] is the forward condition of S_i -> S_{i+1}; losing it sends a robot back
-# along an allowed backward edge (see pnp.stage_graph).
+# along an allowed backward edge (see pnp.task.stage_graph).
 CONDITIONS: tuple[str, ...] = (
     "gripper_ready",
     "object_grabbed",

@@ -19,22 +19,22 @@ import math
 import os
 from dataclasses import dataclass
 
-from pnp import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
+from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
 import mujoco
 import numpy as np
 import torch
 from mujoco import rollout
 
-from pnp.arm_closed_form import arm_ik
-from pnp.arm_gravity import ArmGravity
-from pnp.kinematics import clamp_reach
-from pnp.robot import (
+from pnp.sim.arm_closed_form import arm_ik
+from pnp.legs.arm_gravity import ArmGravity
+from pnp.sim.arm_ik import clamp_reach
+from pnp.sim.robot import (
     ARM_COMPENSATED, ARM_JOINTS, ARM_RANGES, LEG_JOINTS, LEG_KD, LEG_KP, LEG_SPEED, LEG_TORQUE, LEGS, Quadruped, leg_ranges,
     leg_servo_params, stand_pose,
 )
-from pnp.scene import PHYSICS_DT, PnPArena
-from pnp.stage_graph import StageGraph
+from pnp.sim.scene import PHYSICS_DT, PnPArena
+from pnp.task.stage_graph import StageGraph
 from pnp.task import ACTION_HIGH, ACTION_LOW
 
 DECIMATION = 4  # physics steps per policy step (legged_gym)

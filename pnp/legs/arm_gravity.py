@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 import torch
 
-from pnp.backend import quat_to_matrix
+from pnp.sim.backend import quat_to_matrix
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:

@@ -1,13 +1,13 @@
-"""The reward terms of pick-and-place (``pnp.terms.REWARD_TABLE``: Table II, then R_fixed),
+"""The reward terms of pick-and-place (``pnp.task.terms.REWARD_TABLE``: Table II, then R_fixed),
 per robot, from the task geometry, and the env's reward without a curriculum."""
 from __future__ import annotations
 
 import torch
 
-from pnp.robot import ARM_DEFAULT, ARM_RANGES
-from pnp.task_geometry import FOOTPRINT_HALF, BaseFrame, Geometry, rects_overlap
-from pnp.task_state import ACTION_HIGH, ACTION_LOW, PnPState
-from pnp.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
+from pnp.sim.robot import ARM_DEFAULT, ARM_RANGES
+from pnp.task.geometry import FOOTPRINT_HALF, BaseFrame, Geometry, rects_overlap
+from pnp.task.state import ACTION_HIGH, ACTION_LOW, PnPState
+from pnp.task.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
 MAX_OBJ_HEIGHT = 0.3  # m, "max height" of Table II's object height / drop terms
 
@@ -26,7 +26,7 @@ _RELEASED = CONDITIONS.index("object_released")
 
 def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: torch.Tensor, cond: torch.Tensor,
                  frame: BaseFrame | None = None) -> torch.Tensor:
-    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.terms.REWARD_TERMS``."""
+    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.task.terms.REWARD_TERMS``."""
     R = s.ee_pos.shape[1]
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731
     p = action[..., 7]  # the policy's grasp probability (Table II's grab action terms)
@@ -48,7 +48,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "stage_progress": torch.zeros_like(p),
         "arm_default_pose": torch.exp(-2 * torch.sqrt((dq * dq).sum(-1))),
         "action_rate": action_rate(action, last_action),
-        "collision": _collisions(s, frame or BaseFrame(s)),
+        "collision": collisions(s, frame or BaseFrame(s)),
         "joint_limits": joint_limit_excess(s.arm_q),
         "fall": g.fell.float(),
         "gripper_toggle": (((p > 0.5) != (last_action[..., 7] > 0.5)) & ~g.grasped).float(),
@@ -67,7 +67,7 @@ def joint_limit_excess(arm_q: torch.Tensor) -> torch.Tensor:
     return torch.clamp((arm_q - _MID).abs() - _HALF95, min=0.0).sum(-1)
 
 
-def _collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
+def collisions(s: PnPState, frame: BaseFrame | None = None) -> torch.Tensor:
     """Proxy for trunk/leg-box and robot-robot contact, per robot: 1.0 while its footprint
     rectangle (:data:`FOOTPRINT_HALF`) overlaps the box's (its yaw and edges) or the other
     robot's. Rectangles, not circles: beside a 1.5 m box a bounding circle covers the spot

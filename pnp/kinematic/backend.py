@@ -1,12 +1,12 @@
 """A fast kinematic backend of the PnP environment, in pure batched torch (``backend="kinematic"``).
 
-It implements :class:`pnp.backend.Backend` with no physics engine: every quantity is a
+It implements :class:`pnp.sim.backend.Backend` with no physics engine: every quantity is a
 closed-form update of float32 tensors over all worlds and robots at once (no Python loop
 over worlds). It produces the same :class:`pnp.task.PnPState` as the MuJoCo backend, so
 actions, observations, reward terms, stage conditions and the success/fall/timeout rules
 (all computed by ``pnp.task`` and ``envs.pnp_env``) are shared unchanged. This module
-keeps the state (:class:`KinematicBackend`); the step is ``pnp.kinematic_step`` and the
-arm's closed-form kinematics ``pnp.arm_closed_form``.
+keeps the state (:class:`KinematicBackend`); the step is ``pnp.kinematic.step`` and the
+arm's closed-form kinematics ``pnp.sim.arm_closed_form``.
 
 Model, per HL step of ``HL_DT`` = 0.1 s:
 
@@ -51,7 +51,7 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   With ``slip=True`` (one robot, off by default) a box lifted more than 2 cm also slips
   out at random, per HL step with MuJoCo's measured probability: it grows with the EE's
   distance from the bar, its misalignment and the change of its velocity over the step
-  (``pnp.kinematic_step.SLIP_LOGIT``); draws come from the backend's own generator.
+  (``pnp.kinematic.step.SLIP_LOGIT``); draws come from the backend's own generator.
 * **Two robots** (heavy box): the box moves only while both robots hold different
   handles; its pose is then the mean of the two poses implied by the grippers (circular
   mean for yaw), and a robot whose EE drifts more than ``GRASP_DIST`` from its bar loses
@@ -101,14 +101,14 @@ from __future__ import annotations
 
 import torch
 
-from pnp.arm_closed_form import arm_fk, arm_fk_columns, arm_ik
-from pnp.backend import Backend, Layout
-from pnp.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
-from pnp.kinematic_step import (
+from pnp.sim.arm_closed_form import arm_fk, arm_fk_columns, arm_ik
+from pnp.sim.backend import Backend, Layout
+from pnp.sim.box import HANDLE_HEIGHT, HANDLE_INSET, HANDLE_LEN
+from pnp.kinematic.step import (
     EE_TAU, FINGER_SPEED, GRASP_ALIGN, GRAVITY, LIFT_OFF, KinematicParams, box_rotation, kinematic_step,
 )
-from pnp.kinematics import LW, SHOULDER
-from pnp.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE, STANDING_HEIGHT
+from pnp.sim.arm_ik import LW, SHOULDER
+from pnp.sim.robot import ARM_DEFAULT, ARM_RANGES, FINGER_STROKE, STANDING_HEIGHT
 from pnp.task import GRASP_DIST, HL_DT, PnPState
 
 __all__ = ["EE_TAU", "FINGER_SPEED", "GRASP_ALIGN", "GRAVITY", "LIFT_OFF", "KinematicBackend", "KinematicParams",

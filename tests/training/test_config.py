@@ -15,7 +15,8 @@ from pnp.training.rollout import load_policy
 from pnp.training.tasks import TASKS, kinematic_options, make_env, stage_graph
 from tests.training._tiny import ROOT, TINY, compose_cfg
 
-EXPERIMENTS = sorted(p.stem for p in (ROOT / "recipes" / "config" / "experiment").glob("*.yaml"))
+EXPERIMENT_DIR = ROOT / "recipes" / "config" / "experiment"
+EXPERIMENTS = sorted(p.relative_to(EXPERIMENT_DIR).with_suffix("").as_posix() for p in EXPERIMENT_DIR.rglob("*.yaml"))
 QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/train_single/checkpoint_kinematic.pt",
                       "results/train_dual/dual_mj2/checkpoint.pt", "results/repro_single_pnp_checkpoint.pt",
                       "results/repro_dual_pnp_checkpoint.pt", "results/repro_dual_pnp_free_handles_checkpoint.pt"]
@@ -37,6 +38,20 @@ def test_every_experiment_composes_and_builds_its_env(name):
 def test_quoted_experiments_have_their_files():
     quoted = {"single_pnp_mujoco", "single_pnp_kinematic", "dual_pnp_mujoco", "ee_tracking_ablation"}
     assert quoted <= set(EXPERIMENTS)
+
+
+def test_experiment_folder_holds_what_is_named():
+    """experiment/ holds what README, RESULTS, the quoted rows, the Makefile or a recipe's
+    config names (and what those build on); records of A/Bs live in experiment/archive/."""
+    named = "".join((ROOT / f).read_text() for f in ("README.md", "RESULTS.md", "Makefile", "results/quoted.yaml",
+                                                     "recipes/sweep.yaml", "recipes/config/ablation_ee.yaml",
+                                                     "recipes/table1.py"))
+    top = [name for name in EXPERIMENTS if "/" not in name]
+    parents = {line.strip()[2:] for name in top for line in (EXPERIMENT_DIR / f"{name}.yaml").read_text().splitlines()
+               if line.startswith("  - ") and "_self_" not in line and "/" not in line}
+    table1 = {name for name in top if name.startswith("table1_")}  # recipes/table1.py: experiment=table1_<method>
+    unnamed = [name for name in top if name not in named and name not in parents | table1]
+    assert not unnamed, f"move to experiment/archive/ or name them: {unnamed}"
 
 
 def test_the_dual_experiment_matches_its_checkpoint():
@@ -136,7 +151,7 @@ def test_backward_edges_override_replaces_the_tasks_edges_and_names_bad_stages()
 
 
 def test_the_near_pipelines_mujoco_phase_is_mujoco_explore_on_near_starts():
-    cfg = compose_cfg("train", ["experiment=single_pnp_pipeline_near", "out_dir=/nonexistent/run"])
+    cfg = compose_cfg("train", ["experiment=archive/single_pnp_pipeline_near", "out_dir=/nonexistent/run"])
     near, explore = (phase_config(cfg, list(cfg.pipeline).index(n), None) for n in ("mujoco_near", "mujoco_explore"))
     differ = changed_settings(near, explore, {"out_dir", "total_iterations"})
     assert sorted(differ) == ["env.max_episode_steps", "env.start_range"]

@@ -39,7 +39,7 @@ from pnp.training.config import register  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
-from pnp.training.run_records import compact, reuse_or_finish  # noqa: E402
+from pnp.studies.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.tasks import schedule_of  # noqa: E402
 from pnp.training.trainer import train  # noqa: E402
 

@@ -13,7 +13,7 @@ teacher, which reads the clean observation and stage of the same states. The run
 ``checkpoint_every_min`` minutes and at the end), ``metrics.jsonl`` (one line per
 iteration, with ``train/kl_teacher`` and ``beta``), the training plots and the logger's
 files. A folder that holds a checkpoint resumes from it. Keys, defaults and the noise
-model: ``pnp/training/distill_config.py``; the pieces: ``pnp.training.distill``.
+model: ``pnp/distill/config.py``; the pieces: ``pnp.distill.trainer``.
 Evaluate with ``recipes/evaluate_student.py``.
 """
 from __future__ import annotations
@@ -22,8 +22,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from pnp.training.distill import distill
-from pnp.training.distill_config import register
+from pnp.distill.trainer import distill
+from pnp.distill.config import register
 
 register()
 

@@ -26,11 +26,11 @@ from pnp.training.collect import seconds
 from pnp.training.pipeline import load_state
 from pnp.training.paired import comparison_md, paired_comparison, trial_table
 from pnp.training.protocol import resolve_seed
-from pnp.training.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacement, recovery_summary
+from pnp.studies.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacement, recovery_summary
 from pnp.training.provenance import check_clean, evaluation_record, write_result
 from pnp.training.rollout import check_groups, load_policy, run_trials, summarise
 from pnp.training.selection import SELECTION, selected_checkpoint
-from pnp.training.student import add_observation_noise
+from pnp.distill.student import add_observation_noise
 
 
 def table_md(result: dict, method: str) -> str:
@@ -65,7 +65,7 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
 
 def observation_noise(cfg: DictConfig, env) -> dict | None:
     """The student's noise model on the policy's own observation when ``noise_scale`` or
-    ``dropout_p`` is set (``pnp.training.student.add_observation_noise``); None: clean."""
+    ``dropout_p`` is set (``pnp.distill.student.add_observation_noise``); None: clean."""
     if cfg.noise_scale is None and cfg.dropout_p is None:
         return None
     return add_observation_noise(env, resolve_seed(cfg.seed), cfg.noise_scale, cfg.dropout_p)
@@ -83,7 +83,7 @@ def displacement_settings(cfg: DictConfig) -> dict:
 
 
 def displacement_hook(cfg: DictConfig, num_worlds: int) -> BoxDisplacement | None:
-    """The box moved once per episode after its first lift (``pnp.training.recovery``); None: never."""
+    """The box moved once per episode after its first lift (``pnp.studies.recovery``); None: never."""
     if cfg.displacement is None:
         return None
     return BoxDisplacement(num_worlds, resolve_seed(cfg.seed), **displacement_settings(cfg))

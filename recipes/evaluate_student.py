@@ -27,7 +27,7 @@ from pnp.training.paired import comparison_md, paired_comparison, trial_table
 from pnp.training.protocol import resolve_seed
 from pnp.training.provenance import check_clean, evaluation_record, write_result
 from pnp.training.rollout import summarise
-from pnp.training.student import evaluate_views
+from pnp.distill.student import evaluate_views
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
           "teacher_clean": "Teacher (clean observations)"}

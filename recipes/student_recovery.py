@@ -8,7 +8,7 @@ Two comparisons in evaluation envs built alike (paper layouts, 45 s, ending at s
 seeded by ``seed``, the same for every policy), ``trials`` each:
 
 * ``displacement``: 1 s after the box is first lifted it is moved 0.5-1 m in a random
-  direction and set down at rest, released (``pnp.training.recovery.BoxDisplacement``);
+  direction and set down at rest, released (``pnp.studies.recovery.BoxDisplacement``);
   the student on its noisy observation, the teacher with the same noise, the teacher on
   clean observations. Success, completion time, and per trial whether the policy grasped
   and lifted the box again, with its stage history after the displacement.
@@ -31,7 +31,7 @@ from pnp.training.checkpoint import resolve_checkpoint
 from pnp.training.collect import seconds
 from pnp.training.protocol import resolve_seed
 from pnp.training.provenance import check_clean, evaluation_record, write_result
-from pnp.training.recovery import CLEARANCE_M, evaluate_recovery
+from pnp.studies.recovery import CLEARANCE_M, evaluate_recovery
 
 LABELS = {"student": "Student (noisy observations)", "teacher_noisy": "Teacher (same noise)",
           "teacher_clean": "Teacher (clean observations)"}

@@ -12,7 +12,7 @@ the MuJoCo phases, since a MuJoCo fine-tune that learns costs about an hour here
 seed's kinematic policy runs ``eval_kinematic.trials`` deterministic episodes and each MuJoCo
 seed's final policy ``eval.trials`` (Table I). A finished run's record (rows, evaluations)
 goes to ``records_dir`` and is reused while its settings hold, so the comparison survives a
-lost ``runs_dir`` across sessions (``pnp.training.run_records``). Writes ``out``: per method and
+lost ``runs_dir`` across sessions (``pnp.studies.run_records``). Writes ``out``: per method and
 seed the frames and wall time until the training mean end stage and success rate reach
 their thresholds over the kinematic phases (null if never), the evaluations, and the ratios
 against the best baseline; and beside it PNGs of the mean end-of-episode stage (paper Fig. 6)
@@ -48,9 +48,9 @@ from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pi
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402
-from pnp.training.run_records import compact, reuse_or_finish  # noqa: E402
+from pnp.studies.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
-from pnp.training.table1_report import markdown  # noqa: E402
+from pnp.studies.table1_report import markdown  # noqa: E402
 from pnp.training.trainer import make_training  # noqa: E402
 
 register()
@@ -59,7 +59,7 @@ CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
 LAST_SUBTASK = len(STAGES) - 1
 LABELS = {"mean_end_stage": "stage", "success_rate": "success"}
 CURVES = {"end_stage": "mean end-of-episode stage", "success_rate": "training success rate (full task)"}
-EXITS = {1: "success", 2: "frames"}  # pnp.training.sequential's subtask_exit codes
+EXITS = {1: "success", 2: "frames"}  # pnp.baselines.bendikas's subtask_exit codes
 
 
 def _compose(overrides: list[str]) -> DictConfig:

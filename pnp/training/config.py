@@ -163,7 +163,7 @@ class ModelConfig:
     grasp_open_stages: List[int] = field(default_factory=lambda: [5, 6])  # pick-and-place: S5 placed, S6 released
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std
     obs_norm: bool = True  # running observation normalisation (in the checkpoint)
-    # none: one actor and one critic (ours). The per-stage baselines (pnp.training.baselines)
+    # none: one actor and one critic (ours). The per-stage baselines (pnp.baselines.per_stage)
     # keep one actor and one critic per stage: bendikas, the sub-task's pair acts in every
     # stage (Bendikas et al.); erskine, each stage's actor acts, every stage's critic values
     # (Erskine et al.). Their reward is curriculum.schedule=fixed.

@@ -15,7 +15,7 @@ STAGE = ("agents", "stage")
 EPISODE_STAGE = ("agents", "episode_stage")
 PEAK = ("agents", "stage_peak")  # written under curriculum.episode_stage=peak
 ROLL_IN = "roll_in"  # bool [N, 1] per step: the action was the policy's mean (a roll-in step)
-# Teacher-student distillation (pnp.training.student): the student's noisy observation with
+# Teacher-student distillation (pnp.distill.student): the student's noisy observation with
 # arm-joint history (beside the clean one the teacher and the critic read), and the frozen
 # teacher's distribution parameters on the same states.
 STUDENT_OBS = ("agents", "student_observation")

@@ -325,7 +325,7 @@ def make_models(model_cfg: DictConfig, loss_cfg: DictConfig, source: EnvBase | P
     if per_stage:
         critic_net = StageEnsemble([AgentNet(n_in, 1, n_agents, n_agents > 1, model_cfg.critic_cells)
                                     for _ in range(n_stages)], obs_norm, popart, concat=values > 1)
-        if model_cfg.per_stage == "bendikas":  # sub-task 0 first; pnp.training.sequential moves it on
+        if model_cfg.per_stage == "bendikas":  # sub-task 0 first; pnp.baselines.bendikas moves it on
             actor_net.route_all_to(0)
             critic_net.route_all_to(0)
     else:

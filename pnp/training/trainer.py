@@ -23,7 +23,7 @@ from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 from tqdm import tqdm
 
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.training.baselines import baseline_loss, use_baseline_schedule
+from pnp.baselines.per_stage import baseline_loss, use_baseline_schedule
 from pnp.training.checkpoint import (
     adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, rng_state, save_checkpoint,
     seed_everything, set_rng_state,
@@ -37,7 +37,7 @@ from pnp.training.models import fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
 from pnp.training.provenance import launch_record
 from pnp.training.ppo import ppo_update
-from pnp.training.sequential import SequentialSchedule
+from pnp.baselines.bendikas import SequentialSchedule
 from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.tasks import make_env, schedule_of
 

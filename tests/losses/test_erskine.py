@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict
 
 from pnp.losses.erskine import CooperativeGAE, CooperativeMAPPOLoss, mixed_advantage
-from pnp.training.baselines import baseline_loss, use_baseline_schedule
+from pnp.baselines.per_stage import baseline_loss, use_baseline_schedule
 from pnp.training.collect import collect
 from pnp.training.keys import ADVANTAGE, LOC, OBS, SCALE, STAGE, STAGE_ONE_HOT, VALUE, VALUE_TARGET
 from pnp.training.models import PopArt, make_models

@@ -21,7 +21,7 @@ from pnp.training.keys import OBS, STAGE_ONE_HOT
 from pnp.training.pipeline import load_state
 from pnp.training.models import AgentNet, ObsNorm, fold_constant_inputs
 from pnp.training.rollout import load_policy, run_trials
-from pnp.training.sequential import SequentialSchedule
+from pnp.baselines.bendikas import SequentialSchedule
 from pnp.training.stage_ensemble import StageEnsemble, parameter_count
 from pnp.training.tasks import schedule_args, schedule_of
 from pnp.training.trainer import make_training

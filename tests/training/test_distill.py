@@ -14,11 +14,11 @@ from hydra.errors import ConfigCompositionException
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import collect
 from pnp.training.config import migrate
-from pnp.training.distill import beta_at, distill
-from pnp.training.distill_config import register
+from pnp.distill.trainer import beta_at, distill
+from pnp.distill.config import register
 from pnp.training.keys import LOC, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.rollout import load_policy
-from pnp.training.student import FIELD_COLUMNS, Teacher, check_teacher, make_student_env, make_student_models
+from pnp.distill.student import FIELD_COLUMNS, Teacher, check_teacher, make_student_env, make_student_models
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes"))

@@ -1,4 +1,4 @@
-"""The learned low level's quality measurements (pnp.training.ll_quality, recipes/ll_quality.py)."""
+"""The learned low level's quality measurements (pnp.studies.ll_quality, recipes/ll_quality.py)."""
 import sys
 
 import pytest
@@ -10,7 +10,7 @@ from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.legs.backend import LeggedMujocoBackend
 from pnp.sim.robot import LEG_TORQUE, leg_ranges
 from pnp.training.config import LocomotionConfig
-from pnp.training.ll_quality import (
+from pnp.studies.ll_quality import (
     Saturation, command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking,
 )
 from pnp.legs.locomotion import STAND, LegServo

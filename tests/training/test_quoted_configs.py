@@ -9,7 +9,7 @@ import torch
 import yaml
 
 from pnp.training.config import changed_settings, migrate
-from pnp.training.distill_config import distill_config, register
+from pnp.distill.config import distill_config, register
 from pnp.training.pipeline import phase_config
 from pnp.training.provenance import launch_source
 from tests.training._tiny import ROOT, compose_cfg

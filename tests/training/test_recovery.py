@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from pnp.task.scripted import ScriptedPnP
-from pnp.training.distill import distill
-from pnp.training.distill_config import register
+from pnp.distill.trainer import distill
+from pnp.distill.config import register
 from pnp.training.keys import OBS
-from pnp.training.recovery import BoxDisplacement, choose_offsets, dropout_config
+from pnp.studies.recovery import BoxDisplacement, choose_offsets, dropout_config
 from pnp.training.rollout import run_trials
-from pnp.training.student import FIELD_COLUMNS, make_student_env
+from pnp.distill.student import FIELD_COLUMNS, make_student_env
 from pnp.training.tasks import make_env
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 

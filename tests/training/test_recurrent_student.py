@@ -11,11 +11,11 @@ import torch
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import collect
-from pnp.training.distill import distill
-from pnp.training.distill_config import register
+from pnp.distill.trainer import distill
+from pnp.distill.config import register
 from pnp.training.keys import LOC, SCALE, STUDENT_OBS
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, init_state
-from pnp.training.student import make_student_env, make_student_models
+from pnp.distill.student import make_student_env, make_student_models
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
 
 sys.path.insert(0, str(ROOT / "recipes"))

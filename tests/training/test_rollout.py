@@ -13,7 +13,7 @@ from pnp.task.scripted import ScriptedPnP
 from pnp.task.terms import CONDITIONS, REWARD_TERMS
 from pnp.training.keys import ACTION
 from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
-from pnp.training.student import add_observation_noise
+from pnp.distill.student import add_observation_noise
 from pnp.training.tasks import make_env
 from tests.training._tiny import ROOT, compose_cfg, tiny_train
 

@@ -6,7 +6,7 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
-from pnp.training.run_records import load_record, reuse_or_finish, save_record
+from pnp.studies.run_records import load_record, reuse_or_finish, save_record
 from tests.training._tiny import TINY, compose_cfg
 
 

@@ -31,10 +31,10 @@ from pnp.task import HL_DT
 from pnp.task.geometry import FOOTPRINT_HALF
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
-from pnp.training.distill_config import distill_config
+from pnp.distill.config import distill_config
 from pnp.training.keys import STAGE
 from pnp.training.rollout import GRABBED, LIFTED, evaluation_env_config, run_trials, summarise
-from pnp.training.student import EVALUATIONS, Teacher, load_student_actor, make_student_env
+from pnp.distill.student import EVALUATIONS, Teacher, load_student_actor, make_student_env
 
 DELAY_S = 1.0  # after the first lift (the "1 s after the box is first lifted")
 DISTANCE_M = (0.5, 1.0)

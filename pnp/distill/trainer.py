@@ -20,13 +20,13 @@ from pnp.losses.distillation import DistillationPPOLoss
 from pnp.training.checkpoint import load_checkpoint, load_module, seed_everything
 from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
 from pnp.training.config import changed_settings
-from pnp.training.distill_config import distill_config
+from pnp.distill.config import distill_config
 from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import ObsNorm
 from pnp.training.ppo import ppo_update
 from pnp.training.recurrent import init_state
 from pnp.training.start_curriculum import StartCurriculum
-from pnp.training.student import Teacher, make_student_env, make_student_models
+from pnp.distill.student import Teacher, make_student_env, make_student_models
 from pnp.training.trainer import RESUME_OVERRIDES, Trainer, make_loss, truncate_metrics
 
 

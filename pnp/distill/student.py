@@ -25,7 +25,7 @@ from pnp.task import HL_DT
 from pnp.task.observations import OBS_BLOCKS, OBS_FIELDS
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint, seed_everything
 from pnp.training.config import migrate
-from pnp.training.distill_config import NoiseConfig, distill_config
+from pnp.distill.config import NoiseConfig, distill_config
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import AgentNet, ObsNorm, PopArt, fold_constant_inputs, make_models
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, STEP_COUNT, RecurrentStudentNet

@@ -6,7 +6,7 @@ chosen by ``model.per_stage``:
 
 * ``bendikas``: the reward schedule is the current sub-task's
   (``pnp.transforms.baselines.SequentialSubtask``), the loss is our MAPPO loss, and
-  ``pnp.training.sequential.SequentialSchedule`` moves the sub-task on.
+  ``pnp.baselines.bendikas.SequentialSchedule`` moves the sub-task on.
 * ``erskine``: the schedule also writes each stage's reward
   (``pnp.transforms.baselines.StageRewards``) and the loss mixes the stage critics'
   advantages (``pnp.losses.erskine.CooperativeMAPPOLoss``).

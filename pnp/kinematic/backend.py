@@ -48,10 +48,6 @@ Model, per HL step of ``HL_DT`` = 0.1 s:
   (position and yaw in the gripper's yaw frame) of grasp time. The grasp is kept while
   the command stays closed and the EE stays within ``GRASP_DIST`` of its bar (else the
   handle slips out and the fingers close on nothing).
-  With ``slip=True`` (one robot, off by default) a box lifted more than 2 cm also slips
-  out at random, per HL step with MuJoCo's measured probability: it grows with the EE's
-  distance from the bar, its misalignment and the change of its velocity over the step
-  (``pnp.kinematic.step.SLIP_LOGIT``); draws come from the backend's own generator.
 * **Two robots** (heavy box): the box moves only while both robots hold different
   handles; its pose is then the mean of the two poses implied by the grippers (circular
   mean for yaw), and a robot whose EE drifts more than ``GRASP_DIST`` from its bar loses
@@ -85,7 +81,7 @@ Simplifications (with respect to the MuJoCo backend):
   box, is tested without it). (The env's collision *term* is a
   geometric proxy computed by ``pnp.task`` and still works.)
 * The box never tilts or swings: it stays level (yaw only), also when hanging from one
-  handle, and (without ``slip``) it never slips in the pads. It never leaves the floor unless carried.
+  handle, and it never slips in the pads. It never leaves the floor unless carried.
 * The base never falls (``base_z`` is always ``STANDING_HEIGHT``), so the fall term and
   fall termination never fire; the base has no acceleration limits and no legs.
 * The wrist roll j4 is always 0 (the closed-form IK branch); the EE lag replaces the
@@ -119,8 +115,6 @@ __all__ = ["EE_TAU", "FINGER_SPEED", "GRASP_ALIGN", "GRAVITY", "LIFT_OFF", "Kine
 _PRIMARY = ("bx", "by", "yaw", "base_vel", "q", "qd", "finger", "grasp", "handle", "rel_x", "rel_y", "rel_z", "rel_c",
             "rel_s", "box_x", "box_y", "box_z", "box_c", "box_s", "box_yaw", "box_vx", "box_vy", "box_vz", "box_vel",
             "box_size", "box_mass")
-# Saved too, but states written before they existed restore with zeros (an EE at rest).
-_OPTIONAL = ("ee_vx", "ee_vy", "ee_vz")
 
 
 class KinematicBackend(Backend):
@@ -132,17 +126,14 @@ class KinematicBackend(Backend):
 
     def __init__(self, num_worlds: int, num_robots: int, ee_tau: float = EE_TAU, finger_speed: float = FINGER_SPEED,
                  dt: float = HL_DT, grasp_dist: float = GRASP_DIST, grasp_align: float = GRASP_ALIGN,
-                 box_blocks_base: bool = False, grasp_holds: bool = False, slip: bool = False, box_pushed: bool = False,
-                 seed: int = 0):
+                 box_blocks_base: bool = False, grasp_holds: bool = False):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         self.num_worlds, self.num_robots = N, R = num_worlds, num_robots
         self.params = KinematicParams(dt=float(dt), ee_tau=float(ee_tau), finger_speed=float(finger_speed),
                                       grasp_dist=float(grasp_dist), grasp_align=float(grasp_align),
                                       box_blocks_base=bool(box_blocks_base),
-                                      grasp_holds=bool(grasp_holds) and num_robots == 2,
-                                      slip=bool(slip) and num_robots == 1, box_pushed=bool(box_pushed))
-        self._slip_rng = torch.Generator().manual_seed(int(seed))
+                                      grasp_holds=bool(grasp_holds) and num_robots == 2)
         f = dict(dtype=torch.float32)
         lim = torch.tensor(ARM_RANGES, **f)
         self.q_default = torch.tensor(ARM_DEFAULT, **f)
@@ -163,8 +154,6 @@ class KinematicBackend(Backend):
             "box_x": z(N), "box_y": z(N), "box_z": z(N), "box_c": torch.ones(N, **f), "box_s": z(N), "box_yaw": z(N),
             "box_vx": z(N), "box_vy": z(N), "box_vz": z(N), "box_vel": z(N, 6),
             "box_size": torch.ones(N, 3, **f), "box_mass": torch.ones(N, **f),
-            # EE velocity (world) over the last step: slip reads its change
-            "ee_vx": z(N, R), "ee_vy": z(N, R), "ee_vz": z(N, R),
         }
         self._base_z = torch.full((N, R), STANDING_HEIGHT, **f)
         self._derive()
@@ -183,13 +172,12 @@ class KinematicBackend(Backend):
         st["finger"][w] = FINGER_STROKE
         st["rel_c"][w] = 1.0
         for k in ("grasp", "handle", "rel_x", "rel_y", "rel_z", "rel_s", "box_vx", "box_vy", "box_vz", "base_vel",
-                  "box_vel", "qd", *_OPTIONAL):
+                  "box_vel", "qd"):
             st[k][w] = 0
         self._derive()
 
     def step(self, action: torch.Tensor) -> torch.Tensor:
-        u = torch.rand(self.num_worlds, self.num_robots, generator=self._slip_rng) if self.params.slip else None
-        self._st = kinematic_step(self._st, action.float(), self.params, u)
+        self._st = kinematic_step(self._st, action.float(), self.params)
         self._make_views()
         return torch.zeros(self.num_worlds, dtype=torch.bool)
 
@@ -212,11 +200,8 @@ class KinematicBackend(Backend):
         return PnPState(**self._views, base_z=self._base_z, box_size=self._st["box_size"], goal=goal,
                         init_goal_dist=init_goal_dist, grasp_cmd=grasp_cmd)
 
-    def seed(self, seed: int) -> None:
-        self._slip_rng.manual_seed(int(seed))
-
     def get_state(self) -> dict[str, torch.Tensor]:
-        return {**{k: self._st[k].clone() for k in _PRIMARY + _OPTIONAL}, "slip_rng": self._slip_rng.get_state()}
+        return {k: self._st[k].clone() for k in _PRIMARY}
 
     def set_state(self, state: dict[str, torch.Tensor]) -> None:
         missing = [k for k in _PRIMARY if k not in state]
@@ -224,10 +209,7 @@ class KinematicBackend(Backend):
             raise KeyError(f"kinematic backend state is missing {missing}")
         for k in _PRIMARY:
             self._st[k] = state[k].contiguous().clone()
-        for k in _OPTIONAL:
-            self._st[k] = state[k].contiguous().clone() if k in state else torch.zeros_like(self._st["bx"])
-        if "slip_rng" in state:
-            self._slip_rng.set_state(state["slip_rng"])
+        # (a state saved while the removed ``slip`` option existed also holds ee_v* and slip_rng: unread)
         self._derive()
 
     def __getattr__(self, name):

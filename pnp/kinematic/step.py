@@ -10,7 +10,6 @@ import torch
 
 from pnp.sim.arm_closed_form import EE_TO_WRIST, arm_fk_columns, ik_wrist, wrap_angle, wrist_in_reach
 from pnp.sim.box import HANDLE_RADIUS
-from pnp.kinematic.contact import clamp_push, leg_push, pad_push
 from pnp.sim.robot import ARM_RANGES, ARM_SPEED, FINGER_STROKE, STANDING_HEIGHT
 from pnp.task.geometry import FOOTPRINT_HALF, GRASP_DIST, rects_overlap
 from pnp.task.state import HL_DT
@@ -23,13 +22,6 @@ EE_TAU = 0.08  # s, first-order lag of the EE toward its commanded pose
 FINGER_SPEED = 1.0
 LIFT_OFF = 0.01  # m, grasp_holds: a pair's box slides in x, y, yaw only with its bottom this far up
 GRASP_ALIGN = 0.7  # grasp needs 1 - |cos(closing axis, bar axis)| above this (~17 deg)
-# slip: a lone holder's lifted box slips out with probability sigmoid(logit) per HL step,
-# logit = c0 + c_bar * bar distance (m) + c_align * (1 - alignment) + c_dv * |EE velocity
-# change over the step| (m/s): a logistic fit to 3200 MuJoCo carry steps (132 losses with the
-# gripper closed; docs/pipeline_single.md): 0.4 % per step for a centred, aligned, smooth
-# carry, ~25 % beyond 3 cm off the bar.
-SLIP_LOGIT = (-7.15, 140.0, 1.71, 1.61)
-SLIP_LIFT = 0.02  # m, box bottom above the floor from which a slip drops it (the fit's carry steps)
 _Q6_WIND = ARM_RANGES[5][1] - 0.1  # flip the gripper's half-turn choice before j6 reaches its limit
 
 
@@ -45,8 +37,6 @@ class KinematicParams:
     gravity: float = GRAVITY
     box_blocks_base: bool = False  # True: a base does not step into a box it does not hold
     grasp_holds: bool = False  # True: two robots; a closed gripper keeps its bar, its EE follows the grasp point
-    slip: bool = False  # True: one robot; a lifted box slips out at MuJoCo's measured rates (SLIP_LOGIT)
-    box_pushed: bool = False  # True: legs and pads shove a resting box (pnp.kinematic.contact)
 
 
 # Implementation notes (speed, measured on 2 CPU cores at N = 4096): the state is mostly
@@ -57,11 +47,10 @@ class KinematicParams:
 # (torch.stack along the last dim); joints stay [N, R, 6]. A step is ~250 torch ops.
 
 
-def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: KinematicParams,
-                   uniform: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: KinematicParams) -> dict[str, torch.Tensor]:
     """One HL step of every world: a pure function of the state dict (see
-    ``pnp.kinematic.backend.KinematicBackend``), the clipped action [N, R, 8] and, with ``p.slip``,
-    uniform draws [N, R] in [0, 1) for the slips; returns the new state dict."""
+    ``pnp.kinematic.backend.KinematicBackend``) and the clipped action [N, R, 8]; returns the
+    new state dict."""
     dt = p.dt
     alpha = 1.0 - math.exp(-dt / p.ee_tau) if p.ee_tau > 0 else 1.0
     R = action.shape[1]
@@ -139,13 +128,6 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     nx = torch.where(moves, cx, torch.where(airborne, torch.add(box_x, st["box_vx"], alpha=dt), box_x))
     ny = torch.where(moves, cy_, torch.where(airborne, torch.add(box_y, st["box_vy"], alpha=dt), box_y))
     nz = torch.maximum(torch.where(carried, cz, torch.where(airborne, z_fall, box_z)), hc)
-    if p.box_pushed:
-        # The resting box is shoved out of the footprints and the free grippers' pads.
-        leg_x, leg_y = leg_push(st, bx, by, yaw1)
-        pad_x, pad_y = pad_push(st, ee_x, ee_y, ee_z, cg, sg, st["finger"], ~grasp)
-        push_x, push_y = clamp_push(leg_x + pad_x, leg_y + pad_y)
-        resting = ~moves & ~airborne
-        nx, ny = torch.addcmul(nx, push_x, resting), torch.addcmul(ny, push_y, resting)
     nc, ns = torch.where(moves, cc, c0), torch.where(moves, cs, s0)
     lin_x, lin_y, lin_z = (nx - box_x) * (1.0 / dt), (ny - box_y) * (1.0 / dt), (nz - box_z) * (1.0 / dt)
     box_yaw = torch.where(moves, torch.atan2(cs, cc), st["box_yaw"])
@@ -177,18 +159,6 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     grasp = grasp & (bar_held < p.grasp_dist)
     # Closing axis against the bar axis: 1 - |cos(gripper yaw - box yaw)|.
     align = 1.0 - torch.addcmul(cg * ncu, sg, nsu).abs()
-    ee_v = {}  # the EE's world velocity over the step: only slip reads it (and keeps it)
-    if p.slip and R == 1:
-        ee_v = {"ee_vx": (ee_x - st["ee_x"]) * (1.0 / dt), "ee_vy": (ee_y - st["ee_y"]) * (1.0 / dt),
-                "ee_vz": (ee_z - st["ee_z"]) * (1.0 / dt)}
-        if uniform is None:
-            raise ValueError("kinematic_step with slip needs uniform draws [N, R]")
-        dv = torch.sqrt(sum((v - st[k]) ** 2 for k, v in ee_v.items()))
-        c0, c_bar, c_align, c_dv = SLIP_LOGIT
-        hazard = torch.sigmoid(c0 + c_bar * bar_held + c_align * (1.0 - align) + c_dv * dv)
-        # The box moved with the hand this step; from the next one it falls (airborne, no holder).
-        lifted = (nz > hc + SLIP_LIFT).unsqueeze(1)
-        grasp = grasp & ~(lifted & (uniform < hazard))
 
     # Fingers; a new grasp when closing fingers reach a bar the EE is on (fingers held on a
     # bar, or already shut, do not pass the bar radius).
@@ -201,7 +171,7 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     bxr, byr = nx.unsqueeze(1) - ee_x, ny.unsqueeze(1) - ee_y
     out = dict(st)
     out.update(
-        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt), **ee_v,
+        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt),
         base_vel=torch.stack([torch.addcmul(cy * vx, sy, vy, value=-1), torch.addcmul(sy * vx, cy, vy), wz], -1),
         finger=torch.where(grasp | new, HANDLE_RADIUS, f1), grasp=grasp | new, handle=torch.where(new, near_m, held_m),
         rel_x=torch.where(new, torch.addcmul(cg * bxr, sg, byr), rx),

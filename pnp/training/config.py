@@ -24,8 +24,6 @@ class KinematicOptions:
 
     box_blocks_base: bool = False  # a base does not step into a box it does not hold
     grasp_holds: bool = False  # two robots: a closed gripper keeps its bar, its EE follows the grasp point
-    slip: bool = False  # one robot: a lifted box slips out at MuJoCo's measured rates
-    box_pushed: bool = False  # legs and free pads shove a resting box, as on MuJoCo
     grasp_dist: float = GRASP_DIST  # m, EE to bar within which closing fingers grasp (and keep it)
 
 
@@ -322,10 +320,18 @@ class TrainConfig(RunConfig):
 # Keys that old checkpoints hold and the schema dropped: each with the only value that
 # leaves behaviour unchanged (any other value is refused, never silently dropped).
 _RETIRED = {
-    ("env", "lone_holder_pinned"): False,
-    ("loss", "reach_coeff"): 0.0,
+    "env.lone_holder_pinned": False,
+    "loss.reach_coeff": 0.0,
+    "env.kinematic.slip": False,  # measured not to help the kinematic-to-MuJoCo transfer
+    "env.kinematic.box_pushed": False,  # likewise
 }
 _MOVED_TO_KINEMATIC = ("box_blocks_base", "grasp_holds")
+
+
+def _is_neutral(value, neutral) -> bool:
+    if isinstance(neutral, dict):  # a retired group: neutral while its listed keys are
+        return not isinstance(value, dict) or all(value.get(k, v) == v for k, v in neutral.items())
+    return value in (neutral, None)
 
 
 def migrate(saved: dict) -> DictConfig:
@@ -338,10 +344,14 @@ def migrate(saved: dict) -> DictConfig:
     """
     saved = OmegaConf.to_container(OmegaConf.create(saved), resolve=True)
     env, cur, model = saved.setdefault("env", {}), saved.setdefault("curriculum", {}), saved.setdefault("model", {})
-    for (group, key), neutral in _RETIRED.items():
-        value = saved.get(group, {}).pop(key, neutral)
-        if value not in (neutral, None):
-            raise ValueError(f"checkpoint config {group}.{key}={value!r}: that option was removed "
+    for dotted, neutral in _RETIRED.items():
+        *groups, key = dotted.split(".")
+        node = saved
+        for g in groups:
+            node = node.get(g) if isinstance(node, dict) else None
+        value = node.pop(key, neutral) if isinstance(node, dict) else neutral
+        if not _is_neutral(value, neutral):
+            raise ValueError(f"checkpoint config {dotted}={value!r}: that option was removed "
                              f"(only {neutral!r} is still supported)")
     kin = {k: bool(env.pop(k)) for k in _MOVED_TO_KINEMATIC if k in env}
     if env.get("backend") == "kinematic" and "kinematic" not in env:

@@ -95,6 +95,10 @@ def test_migrate_maps_old_keys_and_refuses_retired_ones_that_did_something():
     assert cfg.env.terminate_on_success and cfg.curriculum.episode_stage == "final"  # the code defaults of then
     with pytest.raises(ValueError, match="loss.reach_coeff=10.0"):
         migrate({"loss": {"reach_coeff": 10.0}})
+    # a retired key inside a group, at its neutral value and not
+    assert "slip" not in migrate({"env": {"backend": "kinematic", "kinematic": {"slip": False}}}).env.kinematic
+    with pytest.raises(ValueError, match="env.kinematic.slip=True"):
+        migrate({"env": {"backend": "kinematic", "kinematic": {"slip": True}}})
 
 
 @pytest.mark.parametrize("path", QUOTED_CHECKPOINTS)

@@ -120,7 +120,7 @@ def test_a_corrupt_checkpoint_is_named(tmp_path):
 
 def test_a_kinematic_run_with_options_is_evaluated_on_mujoco(tmp_path):
     """The kinematic options go back to their defaults on MuJoCo, whatever their type."""
-    tiny_train(tmp_path / "run", "total_iterations=1", "env.kinematic.slip=true", "env.kinematic.grasp_dist=0.02")
+    tiny_train(tmp_path / "run", "total_iterations=1", "env.kinematic.box_blocks_base=true", "env.kinematic.grasp_dist=0.02")
     pol = load_policy(tmp_path / "run" / "checkpoint.pt", 1, 0, backend="mujoco", nthread=1, max_episode_steps=2)
     assert not pol.env.base_env.backend.__class__.__name__.startswith("Kinematic")
 

@@ -20,10 +20,9 @@ pay for staying there; with termination they would pay for one step, and every p
 per-step reward the policy still collects in S5 would argue against releasing.
 
 The grasp entry is a probability p; the gripper gets a binary command (paper: "a binary
-command for the gripper"): ``grasp_sampling="threshold"`` closes when p > 0.5 (default;
-the recipes' Bernoulli policy already emits 0 or 1, see ``pnp.losses.distributions``),
-``"bernoulli"`` closes with probability p (for a policy that outputs p itself; PPO then
-never sees the coin flip, which we measured to stall learning to hold a grasp).
+command for the gripper"): it closes when p > 0.5 (the recipes' Bernoulli policy already
+emits 0 or 1, see ``pnp.losses.distributions``). Sampling the command from p inside the env
+was tried and removed: PPO never sees that coin flip, and it stalled learning to hold a grasp.
 """
 from __future__ import annotations
 
@@ -171,17 +170,15 @@ class PnPEnv(RobotEnvBase):
 
     def __init__(self, num_worlds: int = 64, num_robots: int = 1, backend: str | Backend = "mujoco",
                  box_assets: tuple[BoxAsset, ...] | None = None, seed: int = 0, nthread: int | None = None,
-                 start_range: tuple[float, float] = START_RANGE, grasp_sampling: str = "threshold",
+                 start_range: tuple[float, float] = START_RANGE,
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
                  handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False,
                  box_mass: tuple[float, float] | None = None):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
-        if grasp_sampling not in ("threshold", "bernoulli"):
-            raise ValueError(f"grasp_sampling must be 'threshold' or 'bernoulli', got {grasp_sampling!r}")
         if handle_order not in HANDLE_ORDERS:
             raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
-        self.grasp_sampling, self.terminate_on_success = grasp_sampling, bool(terminate_on_success)
+        self.terminate_on_success = bool(terminate_on_success)
         self.handle_order = handle_order
         # Each robot keeps the handle it was given at the episode start (pnp.task.update_claims).
         self.handle_claim = bool(handle_claim)
@@ -264,11 +261,7 @@ class PnPEnv(RobotEnvBase):
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action, clipped = self._check_action(tensordict.get(("agents", "action")))
-        p = action[..., 7]
-        if self.grasp_sampling == "bernoulli":
-            closed = torch.rand(p.shape, generator=self._rng) < p
-        else:
-            closed = p > 0.5
+        closed = action[..., 7] > 0.5
         command = action.clone()
         command[..., 7] = closed.float()
         diverged = self.backend.step(command)

@@ -25,7 +25,6 @@ from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SC
 from pnp.training.models import ObsNorm
 from pnp.training.ppo import ppo_update
 from pnp.training.recurrent import init_state
-from pnp.training.start_curriculum import StartCurriculum
 from pnp.distill.student import Teacher, make_student_env, make_student_models
 from pnp.training.trainer import RESUME_OVERRIDES, Trainer, make_loss, truncate_metrics
 
@@ -91,8 +90,6 @@ class DistillTrainer(Trainer):
         self.loss.set_keys(teacher_loc=TEACHER_LOC, teacher_scale=TEACHER_SCALE)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
-        sc = cfg.env.start_curriculum
-        self.start_curriculum = StartCurriculum(self.env.base_env, sc) if sc.enabled else None
         share = float(cfg.collect.roll_in_share)
         n_worlds = self.env.base_env.num_worlds
         self.roll_in = MeanRollIn(n_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
@@ -138,9 +135,6 @@ class DistillTrainer(Trainer):
         self.counters["frames"] += batch.numel()
         extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
         row = {**self.counters, **episode_metrics(batch), **losses, "beta": beta, **extra}
-        if self.start_curriculum is not None:
-            row["start_range_high"] = self.start_curriculum.high
-            self.start_curriculum.update(row)
         return row
 
 

@@ -28,19 +28,6 @@ class KinematicOptions:
 
 
 @dataclass
-class StartCurriculumConfig:
-    """Ours: the start distances widen with measured success. The upper end starts at
-    ``env.start_range[1]`` and grows by ``step_m`` (up to ``max_m``) each time the training
-    success over the last ``window`` iterations reaches ``min_success``."""
-
-    enabled: bool = False
-    min_success: float = 0.8
-    window: int = 50
-    step_m: float = 0.5
-    max_m: float = 5.0
-
-
-@dataclass
 class LocomotionConfig:
     """``env.task=locomotion``, the learned low level's leg policy (envs/locomotion_env.py):
     legged_gym's ANYmal C flat task where it has a number, else ours."""
@@ -84,12 +71,10 @@ class EnvConfig:
     nthread: Optional[int] = 2
     max_episode_steps: Optional[int] = None  # null: the task env's own (pick-and-place: the paper's 45 s, 450 steps)
     start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
-    start_curriculum: StartCurriculumConfig = field(default_factory=StartCurriculumConfig)
     # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.
     terminate_on_success: bool = False
     handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
-    grasp_sampling: str = "threshold"  # the env closes when p > 0.5 (the Bernoulli gripper emits 0/1)
     # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/evaluation.md).
     paired_trials: bool = False
     # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
@@ -324,6 +309,8 @@ _RETIRED = {
     "loss.reach_coeff": 0.0,
     "env.kinematic.slip": False,  # measured not to help the kinematic-to-MuJoCo transfer
     "env.kinematic.box_pushed": False,  # likewise
+    "env.grasp_sampling": "threshold",  # the env sampled the gripper: stalled learning to hold
+    "env.start_curriculum": {"enabled": False},  # unmeasured (archive/single_pnp_auto only)
 }
 _MOVED_TO_KINEMATIC = ("box_blocks_base", "grasp_holds")
 

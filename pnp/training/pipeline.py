@@ -36,13 +36,12 @@ STATE = "pipeline.json"
 
 class ExitCheck:
     """``rule`` (an ``ExitRule``) over the metric rows of a phase, fed one row at a time.
-    With a start curriculum, the rule counts only once the starts are at their widest.
     ``reason`` says which part ended it: "rule" (the threshold) or "plateau"."""
 
-    def __init__(self, rule: DictConfig | None, rows: list[dict], widest: float | None = None):
-        self.rule, self.rows, self.widest, self.reason = rule, [], widest, None
+    def __init__(self, rule: DictConfig | None, rows: list[dict]):
+        self.rule, self.rows, self.reason = rule, [], None
         self.best, self.best_at = -math.inf, 0  # the plateau's reference: best windowed value, and its row count
-        self.value = None  # the windowed metric at the last row (None before a window, or short of the widest starts)
+        self.value = None  # the windowed metric at the last row (None before a window)
         for row in rows:  # a resumed phase replays its rows, so the plateau counts from the same best
             self.rows.append(row)
             self._track()
@@ -52,12 +51,8 @@ class ExitCheck:
         self._track()
         return self.met()
 
-    def _at_widest(self) -> bool:
-        return self.widest is None or self.rows[-1].get("start_range_high", self.widest) >= self.widest
-
-    def _track(self) -> None:  # the plateau counts only at the widest starts, as the rule does
-        if self.rule is None or not self._at_widest():
-            self.value = None
+    def _track(self) -> None:
+        if self.rule is None:
             return
         self.value = windowed_mean(self.rows, self.rule.metric, int(self.rule.window))
         if self.value is not None and self.value > self.best + float(self.rule.min_delta):
@@ -68,8 +63,6 @@ class ExitCheck:
             return False
         if self.rule.metric not in self.rows[-1]:
             raise KeyError(f"exit rule metric {self.rule.metric!r} is not logged; metrics are {sorted(self.rows[-1])}")
-        if not self._at_widest():
-            return False
         if self.value is not None and self.value >= float(self.rule.min):
             self.reason = "rule"
         elif self.rule.plateau is not None and self.best_at and len(self.rows) - self.best_at >= int(self.rule.plateau):
@@ -161,7 +154,7 @@ def phase_config(cfg: DictConfig, index: int, source: Path | None, done: list[di
         node = OmegaConf.select(pcfg, key, default="<missing>")
         if node == "<missing>":
             raise ValueError(f"pipeline phase {name!r} overrides unknown key {key!r}")
-        # A mapping merges into its node (e.g. env.start_curriculum's keys, checked by its
+        # A mapping merges into its node (e.g. env.kinematic's keys, checked by its
         # schema; a free-form map such as curriculum.stage_gates takes new keys); anything else replaces.
         mapping = isinstance(value, (dict, DictConfig))
         with open_dict(node) if mapping and OmegaConf.get_type(node) is dict else contextlib.nullcontext():
@@ -267,8 +260,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
                                  "or use another out_dir")
             counters = ckpt["counters"]
             rows = [r for r in _read_rows(ckpt_path.parent / "metrics.jsonl") if r["iteration"] <= counters["iteration"]]
-        widest = pcfg.env.start_curriculum.max_m if pcfg.env.start_curriculum.enabled else None
-        check = ExitCheck(phases[index][1].exit, rows, widest)
+        check = ExitCheck(phases[index][1].exit, rows)
         bar.set_description(f"pipeline {index + 1}/{len(names)} {names[index]}")
         if check.met():  # it stopped by its rule after its last checkpoint, before the record
             by_rule = True

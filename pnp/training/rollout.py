@@ -67,11 +67,10 @@ class LoadedPolicy:
 
 def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> DictConfig:
     """A training ``env`` config changed, in place, into the evaluation env's: terminate at
-    success, close the gripper by threshold, start from the paper's layouts, then
+    success, start from the paper's layouts, then
     ``env_overrides`` (``None`` values keep the default); returns it."""
     env.num_worlds, env.max_episode_steps = int(num_worlds), None
     env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
-    env.grasp_sampling = "threshold"  # the deterministic policy's gripper command
     env.terminate_on_success = True  # a trial ends at its success (completion time)
     env.paired_trials = True  # trial i's layout from (seed, i) alone (docs/evaluation.md)
     for key, value in env_overrides.items():

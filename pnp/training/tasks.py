@@ -39,7 +39,7 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
         backend = learned_backend(env_cfg, BOX_SETS[env_cfg.boxes])
     return PnPEnv(num_worlds=int(env_cfg.num_worlds), num_robots=int(env_cfg.num_robots), backend=backend,
                   backend_options=options, seed=int(seed), nthread=env_cfg.nthread,
-                  start_range=tuple(env_cfg.start_range), grasp_sampling=env_cfg.grasp_sampling,
+                  start_range=tuple(env_cfg.start_range),
                   terminate_on_success=bool(env_cfg.terminate_on_success), handle_order=env_cfg.handle_order,
                   handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes],
                   paired_trials=bool(env_cfg.paired_trials),

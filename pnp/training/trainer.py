@@ -38,7 +38,6 @@ from pnp.training.plots import plot_training
 from pnp.training.provenance import launch_record
 from pnp.training.ppo import ppo_update
 from pnp.baselines.bendikas import SequentialSchedule
-from pnp.training.start_curriculum import StartCurriculum
 from pnp.training.tasks import make_env, schedule_of
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
@@ -192,8 +191,6 @@ class Trainer:
             self.subtasks = SequentialSchedule(cfg.baseline.bendikas, schedule_of(self.env), self.models.actor_net,
                                                self.models.critic_net, self.optim)
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
-        sc = cfg.env.start_curriculum
-        self.start_curriculum = StartCurriculum(self.env.base_env, sc) if sc.enabled else None
         share = float(cfg.collect.roll_in_share)
         self.roll_in = MeanRollIn(self.env.base_env.num_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
         if ckpt is not None:
@@ -227,8 +224,6 @@ class Trainer:
         set_rng_state(ckpt["rng"])
         if self.roll_in is not None and "roll_in" in ckpt:
             self.roll_in.length.copy_(ckpt["roll_in"])
-        if self.start_curriculum is not None and "start_curriculum" in ckpt:
-            self.start_curriculum.load_state_dict(ckpt["start_curriculum"])
         if self.subtasks is not None:
             self.subtasks.load_state_dict(ckpt["subtasks"])
         truncate_metrics(self.metrics_path, self.counters["iteration"])
@@ -274,7 +269,6 @@ class Trainer:
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
             "launches": self.launches,
             **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
-            **({"start_curriculum": self.start_curriculum.state_dict()} if self.start_curriculum is not None else {}),
             **({"subtasks": self.subtasks.state_dict()} if self.subtasks is not None else {}),
         })
 
@@ -297,9 +291,6 @@ class Trainer:
         rho = schedule.rho_by_term() if hasattr(schedule, "rho_by_term") else {}
         extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
         row = {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
-        if self.start_curriculum is not None:  # the range these episodes started in, then widen
-            row["start_range_high"] = self.start_curriculum.high
-            self.start_curriculum.update(row)
         if self.subtasks is not None:  # the sub-task that trained, and whether it ended here
             row.update(self.subtasks.update(row, batch.numel()))
         return row

@@ -187,18 +187,12 @@ def test_get_set_state_continues_exactly():
         other.set_state({k: v for k, v in saved.items() if k != "_goal"})
 
 
-@pytest.mark.parametrize("sampling,expected", [("threshold", 0.0), ("bernoulli", 0.3)])
-def test_grasp_sampling(sampling, expected):
-    """p = 0.3: thresholded, the gripper never closes; sampled, it closes 30 % of the steps."""
-    env = PnPEnv(num_worlds=256, num_robots=1, backend="kinematic", grasp_sampling=sampling)
-    td = env.reset()
-    action = env._last_action.clone()
-    action[..., 7] = 0.3
-    closed = []
-    for _ in range(4):
-        td = env.step(td.set(("agents", "action"), action.clone()))
-        closed.append(env.backend.finger[..., 0] < 0.035)  # fingers past mid-stroke
-        td = env.step_mdp(td)
-    assert torch.stack(closed).float().mean().item() == pytest.approx(expected, abs=0.04)
-    with pytest.raises(ValueError, match="grasp_sampling must be 'threshold' or 'bernoulli', got 'sometimes'"):
-        PnPEnv(num_worlds=1, backend="kinematic", grasp_sampling="sometimes")
+def test_the_gripper_closes_by_threshold():
+    """p = 0.3 never closes the gripper; p = 0.7 always does (the command is p > 0.5)."""
+    env = PnPEnv(num_worlds=64, num_robots=1, backend="kinematic")
+    for p, expected in ((0.3, 0.0), (0.7, 1.0)):
+        td = env.reset()
+        action = env._last_action.clone()
+        action[..., 7] = p
+        td = env.step(td.set(("agents", "action"), action))
+        assert (env.backend.finger[..., 0] < 0.035).float().mean().item() == expected  # past mid-stroke

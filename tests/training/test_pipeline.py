@@ -12,7 +12,7 @@ from omegaconf.errors import ConfigKeyError
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.config import ExitRule
 from pnp.training.pipeline import ExitCheck, phase_config, phase_frames, run_pipeline, total_frames
-from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
+from tests.training._tiny import ROOT, TINY, compose_cfg
 
 sys.path.insert(0, str(ROOT / "recipes"))
 import evaluate as evaluate_recipe  # noqa: E402
@@ -206,7 +206,7 @@ def test_a_mapping_override_adds_keys_to_a_free_form_map_but_not_to_a_typed_node
     pcfg = phase_config(compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a]", run_gate, gates]), 0, None)
     assert dict(pcfg.curriculum.stage_gates) == {"object_to_goal_dist": 3, "object_to_goal_vel": 3}  # merged
     typed = compose_cfg("train", [*TINY, f"out_dir={tmp_path}", "pipeline=[a]",
-                                  "++phases={a: {overrides: {env.start_curriculum: {widen_by: 0.1}}}}"])
+                                  "++phases={a: {overrides: {env.kinematic: {widen_by: 0.1}}}}"])
     with pytest.raises(ConfigKeyError, match="widen_by"):  # the schema refuses it
         phase_config(typed, 0, None)
 
@@ -238,26 +238,6 @@ def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):
     assert first["checkpoint"].endswith("0_near/checkpoint.pt") and first["phases"] == out["phases"][:1]
     with pytest.raises(ValueError, match="phase='mid' is not a finished phase"):
         evaluate_recipe.evaluate(compose_cfg("evaluate", [f"checkpoint={tmp_path / 'run'}", "phase=mid"]))
-
-
-def test_start_curriculum_widens_with_success_resumes_and_gates_the_exit_rule(tmp_path):
-    sc = ["env.start_curriculum={enabled: true, min_success: 0.0, window: 1, step_m: 0.5, max_m: 2.5}", "env.start_range=[0.6,1.5]"]
-    out = tiny_train(tmp_path / "run", "total_iterations=3", "env.max_episode_steps=3", *sc)
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert [r["start_range_high"] for r in rows] == [1.5, 2.0, 2.5]  # success >= 0 always: widen every iteration
-    assert out["iteration"] == 3
-    ckpt = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
-    assert ckpt["start_curriculum"]["start_range"] == [0.6, 2.5]  # capped at max_m
-    tiny_train(tmp_path / "split", "total_iterations=2", "env.max_episode_steps=3", *sc)
-    tiny_train(tmp_path / "split", "total_iterations=3", "env.max_episode_steps=3", f"resume={tmp_path / 'split'}", *sc)
-    split = [json.loads(line) for line in (tmp_path / "split" / "metrics.jsonl").read_text().splitlines()]
-    assert [r["start_range_high"] for r in split] == [1.5, 2.0, 2.5]
-    rule = OmegaConf.structured(ExitRule(metric="frames", min=0, window=1))
-    assert not ExitCheck(rule, [{"frames": 1, "episodes": 1, "start_range_high": 2.0}], widest=2.5).met()
-    assert ExitCheck(rule, [{"frames": 1, "episodes": 1, "start_range_high": 2.5}], widest=2.5).met()
-    with pytest.raises(ValueError, match="max_m=1.0"):
-        tiny_train(tmp_path / "bad", "total_iterations=1", "env.start_curriculum={enabled: true, max_m: 1.0}",
-                   "env.start_range=[0.6,1.5]")
 
 
 @pytest.mark.slow

@@ -32,7 +32,7 @@ from typing import Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.training.config import CurriculumConfig, RunConfig
+from pnp.training.config import CurriculumConfig, RunConfig, drop_retired
 
 MOCAP_FIELDS = ["object.box_pos", "object.box_x_axis", "object.box_y_axis", "object.box_lin_vel",
                 "object.box_ang_vel", "object.handles"]
@@ -135,7 +135,7 @@ def distill_config(saved: dict) -> DictConfig:
     if "distill" not in saved:
         raise ValueError("not a student checkpoint (its configuration has no 'distill' section): "
                          "a teacher's is evaluated with recipes/evaluate.py")
-    return OmegaConf.merge(OmegaConf.structured(DistillConfig), saved)
+    return OmegaConf.merge(OmegaConf.structured(DistillConfig), drop_retired(saved))
 
 
 def register() -> None:

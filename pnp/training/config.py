@@ -321,16 +321,10 @@ def _is_neutral(value, neutral) -> bool:
     return value in (neutral, None)
 
 
-def migrate(saved: dict) -> DictConfig:
-    """A checkpoint's stored configuration as a validated :class:`TrainConfig`.
-
-    Checkpoints written before the schema lack keys that have defaults now (and had other
-    code defaults then: ``terminate_on_success`` True, ``episode_stage`` final,
-    ``grasp_dist`` tanh_normal), hold the kinematic options at the top of ``env``, and
-    may hold retired keys.
-    """
+def drop_retired(saved) -> dict:
+    """A stored configuration (as a plain dict) without the keys the schema dropped; a key
+    that was not at its neutral value is refused, never silently dropped."""
     saved = OmegaConf.to_container(OmegaConf.create(saved), resolve=True)
-    env, cur, model = saved.setdefault("env", {}), saved.setdefault("curriculum", {}), saved.setdefault("model", {})
     for dotted, neutral in _RETIRED.items():
         *groups, key = dotted.split(".")
         node = saved
@@ -340,6 +334,19 @@ def migrate(saved: dict) -> DictConfig:
         if not _is_neutral(value, neutral):
             raise ValueError(f"checkpoint config {dotted}={value!r}: that option was removed "
                              f"(only {neutral!r} is still supported)")
+    return saved
+
+
+def migrate(saved: dict) -> DictConfig:
+    """A checkpoint's stored configuration as a validated :class:`TrainConfig`.
+
+    Checkpoints written before the schema lack keys that have defaults now (and had other
+    code defaults then: ``terminate_on_success`` True, ``episode_stage`` final,
+    ``grasp_dist`` tanh_normal), hold the kinematic options at the top of ``env``, and
+    may hold retired keys.
+    """
+    saved = drop_retired(saved)
+    env, cur, model = saved.setdefault("env", {}), saved.setdefault("curriculum", {}), saved.setdefault("model", {})
     kin = {k: bool(env.pop(k)) for k in _MOVED_TO_KINEMATIC if k in env}
     if env.get("backend") == "kinematic" and "kinematic" not in env:
         env["kinematic"] = kin

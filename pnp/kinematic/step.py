@@ -54,11 +54,54 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     dt = p.dt
     alpha = 1.0 - math.exp(-dt / p.ee_tau) if p.ee_tau > 0 else 1.0
     R = action.shape[1]
-    vx, vy, wz = action[..., 0], action[..., 1], action[..., 2]
     closed = action[..., 7] > 0.5
     zero, zero_w, one_w = st["zero"], st["zero_w"], st["one_w"]
+    bx, by, yaw1, vx, vy, wz = _move_bases(st, action, p)
+    grasp = st["grasp"] & closed  # opening the gripper lets go
+    q_old = st["q"]
+    q = _arm_joints(st, action, grasp, alpha, zero, dt)
+    arm = arm_fk_columns(q, yaw1, bx, by)
+    box = _move_box(st, arm, grasp, R, p)
+    nx, ny, nz, nc, ns = box["nx"], box["ny"], box["nz"], box["nc"], box["ns"]
+    if p.grasp_holds and R == 2:
+        # The bar holds the hand: a holder's EE goes to its grasp point on the box's new pose
+        # (static for a lone holder, the pair's mean when both carry), as far as reach allows.
+        q = torch.where(grasp.unsqueeze(-1), _hold_q(st, q, nx, ny, nz, nc, ns, bx, by, yaw1, zero), q)
+        arm = arm_fk_columns(q, yaw1, bx, by)
+    cy, sy, cg, sg = arm["cy"], arm["sy"], arm["cg"], arm["sg"]
+    ee_x, ee_y, ee_z = arm["ee_x"], arm["ee_y"], arm["ee_z"]
+    grasp, new, near_m, f1 = _grasp_and_fingers(st, arm, box, grasp, closed, p)
+    held_m, carried, flying = st["handle"], box["carried"], box["flying"]
+    lin_x, lin_y, lin_z = box["lin_x"], box["lin_y"], box["lin_z"]
+    ncu, nsu = nc.unsqueeze(1), ns.unsqueeze(1)
+    rx, ry, rz, rc, rs = st["rel_x"], st["rel_y"], st["rel_z"], st["rel_c"], st["rel_s"]
+    # Box pose in the gripper's yaw frame, recorded at grasp time.
+    bxr, byr = nx.unsqueeze(1) - ee_x, ny.unsqueeze(1) - ee_y
+    out = dict(st)
+    out.update(
+        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt),
+        base_vel=torch.stack([torch.addcmul(cy * vx, sy, vy, value=-1), torch.addcmul(sy * vx, cy, vy), wz], -1),
+        finger=torch.where(grasp | new, HANDLE_RADIUS, f1), grasp=grasp | new, handle=torch.where(new, near_m, held_m),
+        rel_x=torch.where(new, torch.addcmul(cg * bxr, sg, byr), rx),
+        rel_y=torch.where(new, torch.addcmul(cg * byr, sg, bxr, value=-1), ry),
+        rel_z=torch.where(new, nz.unsqueeze(1) - ee_z, rz),
+        rel_c=torch.where(new, torch.addcmul(ncu * cg, nsu, sg), rc),
+        rel_s=torch.where(new, torch.addcmul(nsu * cg, ncu, sg, value=-1), rs),
+        box_x=nx, box_y=ny, box_z=nz, box_c=nc, box_s=ns, box_yaw=box["box_yaw"],
+        box_vx=torch.where(carried, lin_x, st["box_vx"] * flying),
+        box_vy=torch.where(carried, lin_y, st["box_vy"] * flying),
+        box_vz=torch.where(carried, lin_z, (st["box_vz"] - p.gravity * dt) * flying),
+        box_vel=torch.stack([lin_x, lin_y, lin_z, zero_w, zero_w, box["wz_box"]], -1),
+        box_rot=box_rotation(nc, ns, zero_w, one_w), **arm,
+    )
+    return out
 
-    # Base: constant body-frame twist over the step, integrated exactly (an arc).
+
+def _move_bases(st, action, p: KinematicParams):
+    """Each base under a constant body-frame twist over the step, integrated exactly (an arc);
+    returns its new pose and the twist it moved with (zero where a box blocked it)."""
+    dt = p.dt
+    vx, vy, wz = action[..., 0], action[..., 1], action[..., 2]
     yaw0 = st["yaw"]
     dyaw = wz * dt
     k = torch.sinc(wz * (dt / (2 * math.pi))) * dt
@@ -74,11 +117,13 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
         block = _box_overlap(st, bx, by, yaw1) & ~_box_overlap(st, st["bx"], st["by"], yaw0) & ~st["grasp"]
         bx, by, yaw1 = torch.where(block, st["bx"], bx), torch.where(block, st["by"], by), torch.where(block, yaw0, yaw1)
         vx, vy, wz = vx * ~block, vy * ~block, wz * ~block
+    return bx, by, yaw1, vx, vy, wz
 
-    # Opening the gripper lets go.
-    grasp = st["grasp"] & closed
 
-    # EE target: first-order lag toward the command (base frame), half-turn yaw choice.
+def _arm_joints(st, action, grasp, alpha: float, zero, dt: float) -> torch.Tensor:
+    """The arm's joints [N, R, 6] after the step: the EE target lags toward the command (base
+    frame) with a half-turn yaw choice, is scaled into reach, solved in closed form, then
+    rate-limited and clamped to the joint ranges."""
     q_old = st["q"]
     q6_old = q_old[..., 5]
     yaw_now = q_old[..., 0] - q6_old
@@ -91,15 +136,16 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     wx, wy, wzc, dr2 = wrist_in_reach(wx, wy, wzc)
     # A held box stays above the floor: EE height >= c/2 - (box z - EE z at grasp).
     wzc = torch.where(grasp, torch.maximum(wzc, st["min_wz"] - st["rel_z"]), wzc)
-    # Closed-form IK (as arm_ik), then the joint rate limit and the joint ranges.
-    q_des = ik_wrist(wx, wy, wzc, dr2, yaw_t, zero)
+    q_des = ik_wrist(wx, wy, wzc, dr2, yaw_t, zero)  # as arm_ik
     dq_max = ARM_SPEED * dt
-    q = torch.clamp(q_old + (q_des - q_old).clamp(-dq_max, dq_max), st["q_low"], st["q_high"])
-    arm = arm_fk_columns(q, yaw1, bx, by)
-    cy, sy, cg, sg = arm["cy"], arm["sy"], arm["cg"], arm["sg"]
-    ee_x, ee_y, ee_z = arm["ee_x"], arm["ee_y"], arm["ee_z"]
+    return torch.clamp(q_old + (q_des - q_old).clamp(-dq_max, dq_max), st["q_low"], st["q_high"])
 
-    # Box: carried, resting or falling.
+
+def _move_box(st, arm, grasp, R: int, p: KinematicParams) -> dict[str, torch.Tensor]:
+    """The box carried, resting or falling: its new pose (nx, ny, nz, nc, ns, box_yaw), its
+    velocity over the step, and whether it was carried, moved and is still flying."""
+    dt = p.dt
+    cg, sg, ee_x, ee_y, ee_z = arm["cg"], arm["sg"], arm["ee_x"], arm["ee_y"], arm["ee_z"]
     box_x, box_y, box_z, c0, s0 = st["box_x"], st["box_y"], st["box_z"], st["box_c"], st["box_s"]
     hc = st["box_hc"]
     rx, ry, rz, rc, rs = st["rel_x"], st["rel_y"], st["rel_z"], st["rel_c"], st["rel_s"]
@@ -124,29 +170,27 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     # holders dragged it to the goal after one brief lift, which counted as success.
     moves = carried & (cz > hc + LIFT_OFF) if p.grasp_holds and R == 2 else carried
     z_fall = torch.add(box_z, st["box_vz"], alpha=dt) - 0.5 * p.gravity * dt * dt
-    flying = airborne & (z_fall > hc)
     nx = torch.where(moves, cx, torch.where(airborne, torch.add(box_x, st["box_vx"], alpha=dt), box_x))
     ny = torch.where(moves, cy_, torch.where(airborne, torch.add(box_y, st["box_vy"], alpha=dt), box_y))
     nz = torch.maximum(torch.where(carried, cz, torch.where(airborne, z_fall, box_z)), hc)
-    nc, ns = torch.where(moves, cc, c0), torch.where(moves, cs, s0)
-    lin_x, lin_y, lin_z = (nx - box_x) * (1.0 / dt), (ny - box_y) * (1.0 / dt), (nz - box_z) * (1.0 / dt)
     box_yaw = torch.where(moves, torch.atan2(cs, cc), st["box_yaw"])
-    wz_box = wrap_angle(box_yaw - st["box_yaw"]) * (1.0 / dt)
+    return {"nx": nx, "ny": ny, "nz": nz, "nc": torch.where(moves, cc, c0), "ns": torch.where(moves, cs, s0),
+            "box_yaw": box_yaw, "wz_box": wrap_angle(box_yaw - st["box_yaw"]) * (1.0 / dt),
+            "lin_x": (nx - box_x) * (1.0 / dt), "lin_y": (ny - box_y) * (1.0 / dt), "lin_z": (nz - box_z) * (1.0 / dt),
+            "carried": carried, "flying": airborne & (z_fall > hc)}
 
-    if p.grasp_holds and R == 2:
-        # The bar holds the hand: a holder's EE goes to its grasp point on the box's new pose
-        # (static for a lone holder, the pair's mean when both carry), as far as reach allows.
-        q = torch.where(grasp.unsqueeze(-1), _hold_q(st, q, nx, ny, nz, nc, ns, bx, by, yaw1, zero), q)
-        arm = arm_fk_columns(q, yaw1, bx, by)
-        cy, sy, cg, sg = arm["cy"], arm["sy"], arm["cg"], arm["sg"]
-        ee_x, ee_y, ee_z = arm["ee_x"], arm["ee_y"], arm["ee_z"]
 
+def _grasp_and_fingers(st, arm, box, grasp, closed, p: KinematicParams):
+    """The grasps kept (EE within ``grasp_dist`` of its bar), the new ones (closing fingers
+    reach a bar the EE is on, aligned across it; fingers held on a bar, or already shut, do
+    not pass the bar radius), which handle is nearer, and the fingers' new opening."""
+    cg, sg, ee_x, ee_y, ee_z = arm["cg"], arm["sg"], arm["ee_x"], arm["ee_y"], arm["ee_z"]
+    ncu, nsu = box["nc"].unsqueeze(1), box["ns"].unsqueeze(1)
     # Handle bars in the (level) box frame: EE distance to both bars.
-    ncu, nsu = nc.unsqueeze(1), ns.unsqueeze(1)
-    dx, dy = ee_x - nx.unsqueeze(1), ee_y - ny.unsqueeze(1)
+    dx, dy = ee_x - box["nx"].unsqueeze(1), ee_y - box["ny"].unsqueeze(1)
     lx = torch.addcmul(ncu * dx, nsu, dy)
     ly = torch.addcmul(ncu * dy, nsu, dx, value=-1)
-    lz = ee_z - (nz + st["box_hz"]).unsqueeze(1)
+    lz = ee_z - (box["nz"] + st["box_hz"]).unsqueeze(1)
     ex = (ly.abs() - st["box_half_len"]).clamp(min=0.0)
     common = torch.addcmul(lz * lz, ex, ex)
     hx = st["box_hx"]
@@ -154,39 +198,15 @@ def kinematic_step(st: dict[str, torch.Tensor], action: torch.Tensor, p: Kinemat
     bar_p = torch.sqrt(torch.addcmul(common, dxp, dxp))
     bar_m = torch.sqrt(torch.addcmul(common, dxm, dxm))
     near_m = lx < 0  # handle 1 (-x) has the nearer centre
-    held_m = st["handle"]
-    bar_held = torch.where(held_m, bar_m, bar_p)
-    grasp = grasp & (bar_held < p.grasp_dist)
+    grasp = grasp & (torch.where(st["handle"], bar_m, bar_p) < p.grasp_dist)
     # Closing axis against the bar axis: 1 - |cos(gripper yaw - box yaw)|.
     align = 1.0 - torch.addcmul(cg * ncu, sg, nsu).abs()
-
-    # Fingers; a new grasp when closing fingers reach a bar the EE is on (fingers held on a
-    # bar, or already shut, do not pass the bar radius).
     f0 = st["finger"]
-    fstep = p.finger_speed * dt
+    fstep = p.finger_speed * p.dt
     f1 = torch.where(closed, (f0 - fstep).clamp(min=0.0), (f0 + fstep).clamp(max=FINGER_STROKE))
     new = (f0 > HANDLE_RADIUS) & (f1 <= HANDLE_RADIUS) & (torch.where(near_m, bar_m, bar_p) < p.grasp_dist)
     new = new & (align > p.grasp_align)
-    # Box pose in the gripper's yaw frame, recorded at grasp time.
-    bxr, byr = nx.unsqueeze(1) - ee_x, ny.unsqueeze(1) - ee_y
-    out = dict(st)
-    out.update(
-        bx=bx, by=by, yaw=yaw1, q=q, qd=(q - q_old) * (1.0 / dt),
-        base_vel=torch.stack([torch.addcmul(cy * vx, sy, vy, value=-1), torch.addcmul(sy * vx, cy, vy), wz], -1),
-        finger=torch.where(grasp | new, HANDLE_RADIUS, f1), grasp=grasp | new, handle=torch.where(new, near_m, held_m),
-        rel_x=torch.where(new, torch.addcmul(cg * bxr, sg, byr), rx),
-        rel_y=torch.where(new, torch.addcmul(cg * byr, sg, bxr, value=-1), ry),
-        rel_z=torch.where(new, nz.unsqueeze(1) - ee_z, rz),
-        rel_c=torch.where(new, torch.addcmul(ncu * cg, nsu, sg), rc),
-        rel_s=torch.where(new, torch.addcmul(nsu * cg, ncu, sg, value=-1), rs),
-        box_x=nx, box_y=ny, box_z=nz, box_c=nc, box_s=ns, box_yaw=box_yaw,
-        box_vx=torch.where(carried, lin_x, st["box_vx"] * flying),
-        box_vy=torch.where(carried, lin_y, st["box_vy"] * flying),
-        box_vz=torch.where(carried, lin_z, (st["box_vz"] - p.gravity * dt) * flying),
-        box_vel=torch.stack([lin_x, lin_y, lin_z, zero_w, zero_w, wz_box], -1),
-        box_rot=box_rotation(nc, ns, zero_w, one_w), **arm,
-    )
-    return out
+    return grasp, new, near_m, f1
 
 
 def _hold_q(st, q, nx, ny, nz, nc, ns, bx, by, yaw, zero) -> torch.Tensor:

@@ -22,7 +22,7 @@ test-all: $(STAMP)
 # Main job: the single-robot pipeline from random weights (recipes/config/experiment/
 # single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then a checkpoint chosen among
 # the last phase's snapshots on the selection seeds 777 and 778, then 500 paired trials of it
-# on the reporting seed (docs/evaluation.md) into runs/main (results/ holds only quoted
+# on the reporting seed (docs/guide/evaluation.md) into runs/main (results/ holds only quoted
 # figures). Ctrl-C checkpoints; re-running resumes.
 RUN ?= runs/main
 train: $(STAMP)

@@ -7,7 +7,7 @@ Each row of ``results/quoted.yaml`` runs ``recipes/evaluate.py`` (or ``evaluate_
 on a committed checkpoint into ``results/<name>.json``. What the evaluation does not produce (a pipeline's phases and
 cost, its selection, notes) is carried over from the committed file, and that file's former
 figure is kept under ``previous_evaluation`` so that the move is visible. The reporting seed
-(``pnp.training.protocol``) is for quoting only: see docs/evaluation.md.
+(``pnp.training.protocol``) is for quoting only: see docs/guide/evaluation.md.
 """
 from __future__ import annotations
 

@@ -30,3 +30,10 @@ def test_functions_are_under_80_lines():
 
 def test_pnp_holds_subpackages_only():
     assert sorted(p.name for p in (ROOT / "pnp").glob("*.py")) == ["__init__.py"]
+
+
+def test_tests_import_the_package_not_the_recipes():
+    """Recipes are thin command lines; what a test checks lives in the package."""
+    offenders = [str(p.relative_to(ROOT)) for p in _python(("tests",))
+                 if "sys.path.insert(0, str(ROOT / \"recipes\"" in p.read_text()]
+    assert not offenders, offenders

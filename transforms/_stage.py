@@ -178,7 +178,7 @@ class StageTransition(_ClonesOwnBuffers, _ResetKeysMixin, _EnvOnly, Transform):
         reset = _slot_reset_mask(tensordict, self.reset_keys, slots, device)
         # A partial reset given the reset keys alone (TorchRL's own step_and_maybe_reset does so)
         # writes zeros for the other slots too: TorchRL then merges the output into the carried
-        # tensordict by the mask, and pads every entry it lacks with 0 (docs/own_env.md).
+        # tensordict by the mask, and pads every entry it lacks with 0 (docs/guide/own_env.md).
         stage = torch.zeros(slots, dtype=torch.long, device=device)
         if prev is not None:
             stage = torch.where(reset, stage, prev.reshape(slots))

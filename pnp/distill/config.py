@@ -116,7 +116,7 @@ class KLConfig:
     # True: curriculum.backward_edges may add edges to the teacher's graph, and the teacher
     # labels with this graph's stage. Why: where the teacher's graph has no way back (dual: S3),
     # a dropped box stays S3 for the teacher and looks like S0 to the student; 78 % of the dual
-    # student's S3 steps had no grasp, each labelled with the teacher's S3 action (docs/distillation.md).
+    # student's S3 steps had no grasp, each labelled with the teacher's S3 action (docs/history/distillation.md).
     add_backward_edges: bool = False
 
 

@@ -39,7 +39,7 @@ class LowLevelExecutor(ABC):
 class IdealExecutor(LowLevelExecutor):
     """``finger_speed`` (m/s per finger, optional): finger targets ramp toward the command at
     this speed. Without it they jump, and the servos drive the pads at up to ~7 m/s: in one
-    5 ms substep they pass a 30 mm bar's centre and end crossed inside it (docs/pipeline_single.md)."""
+    5 ms substep they pass a 30 mm bar's centre and end crossed inside it (docs/history/pipeline_single.md)."""
 
     def __init__(self, num_worlds: int, num_robots: int, ik_iters: int = 3, finger_speed: float | None = None):
         if finger_speed is not None and not finger_speed > 0:

@@ -71,11 +71,11 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     RewardTerm("fall", None, -100.0, 0.0, 1.0),
     # Not in the paper, off unless curriculum.fixed_weights sets it: 1 when the gripper command
     # flips while nothing is held. Closing and opening next to a handle is how the MuJoCo
-    # policies knocked boxes over (docs/pipeline_single/failures.md).
+    # policies knocked boxes over (docs/history/pipeline_single/failures.md).
     RewardTerm("gripper_toggle", None, 0.0, 0.0, 1.0),
     # Not in the paper, off unless set: 1 - cos(tilt) of the box while no robot holds it (0
     # upright, 1 on its side). Fingers tipping the unheld box end most failed MuJoCo trials
-    # (docs/pipeline_single/run_8.md); a grip lifting one handle tilts it, hence unheld only.
+    # (docs/history/pipeline_single/run_8.md); a grip lifting one handle tilts it, hence unheld only.
     RewardTerm("object_tilt", None, 0.0, 0.0, 2.0),
 )
 

@@ -7,6 +7,7 @@ Defaults live here and nowhere else: code reads ``cfg.<group>.<key>`` without fa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -16,6 +17,10 @@ from pnp.sim.layout import START_RANGE
 from pnp.legs.locomotion import ACTION_SCALE, TRACKING_SIGMA
 from pnp.sim.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
+
+
+# The recipes' hydra configs (a checkout's; the studies and tools compose from them).
+RECIPES_CONFIG = str(Path(__file__).resolve().parents[2] / "recipes" / "config")
 
 
 @dataclass
@@ -47,11 +52,11 @@ class LocomotionConfig:
     fall_tilt: float = 1.0  # rad between the trunk's z axis and the vertical
     # legged_gym's only_positive_rewards (True there): each step's summed reward clipped at 0,
     # so the penalties cannot outweigh what a gait being learned earns. Off in our first leg
-    # policy (docs/low_level.md).
+    # policy (docs/history/low_level.md).
     only_positive_rewards: bool = False
     # The leg servos and the action's scale (pnp.legs.locomotion.LegServo); the defaults are
     # robot.py's model (legged_gym's ANYmal C kp 80, kd 2) and legged_gym's 0.5 rad. The leg
-    # policy's checkpoint carries them to the legged backend (docs/low_level.md: kp 80 sags).
+    # policy's checkpoint carries them to the legged backend (docs/history/low_level.md: kp 80 sags).
     leg_kp: float = LEG_KP
     leg_kd: float = LEG_KD
     action_scale: float = ACTION_SCALE
@@ -75,7 +80,7 @@ class EnvConfig:
     terminate_on_success: bool = False
     handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
-    # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/evaluation.md).
+    # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/guide/evaluation.md).
     paired_trials: bool = False
     # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
     box_mass: Optional[List[float]] = None
@@ -85,7 +90,7 @@ class EnvConfig:
     low_level: str = "ideal"
     low_level_checkpoint: Optional[str] = None
     # MuJoCo only, m/s per finger: finger targets ramp at this speed. null: they jump, and
-    # the servos drive the pads through a handle bar in one substep (docs/pipeline_single.md).
+    # the servos drive the pads through a handle bar in one substep (docs/history/pipeline_single.md).
     finger_speed: Optional[float] = None
 
 
@@ -116,7 +121,7 @@ class CurriculumConfig:
     # Ours, beside Table II's (grab action in range, stage >= 5): stage-wise terms that count
     # only from a stage on, {term: stage index}. Under fixed scales on MuJoCo the legs pushed
     # the box to the goal for the S3 terms, which Table II pays at any stage: the paper's
-    # "kicking the object to the destination" (docs/pipeline_single.md, run 6).
+    # "kicking the object to the destination" (docs/history/pipeline_single.md, run 6).
     stage_gates: Dict[str, int] = field(default_factory=dict)
     stage_rewards: bool = True  # false: control run with R_fixed only (stage terms weighted 0)
     fixed_weights: Dict[str, float] = field(default_factory=dict)  # R_fixed weights by term name
@@ -130,7 +135,7 @@ class ModelConfig:
     grasp_dist: str = "bernoulli"  # bernoulli (losses/distributions.py) | tanh_normal (a probability)
     min_scale: float = 0.0  # > 0: floor on every continuous entry's pre-tanh std
     # > 0: floor on the grasp entry's pre-tanh std, tanh_normal gripper only (the Bernoulli's
-    # ignores its scale); the single-robot chain began with it (docs/train_single/LINEAGE.md).
+    # ignores its scale); the single-robot chain began with it (docs/history/train_single/LINEAGE.md).
     grasp_min_scale: float = 0.0
     # > 0, Bernoulli gripper only: a soft floor on its closing probability, so that grasps are
     # still tried where p would collapse to ~0 (models.GripperFloor).
@@ -141,7 +146,7 @@ class ModelConfig:
     # > 0 (needs grasp_min_prob): in the stages listed below, a soft ceiling on the closing
     # probability at 1 - this, so that a held box is let go now and then where letting go is
     # the task. Held boxes drove the logit to ~8 (p ~ 0.9998) and placed boxes sat for
-    # hundreds of iterations without a release (docs/pipeline_single.md, run 3).
+    # hundreds of iterations without a release (docs/history/pipeline_single.md, run 3).
     grasp_open_min_prob: float = 0.0
     grasp_open_stages: List[int] = field(default_factory=lambda: [5, 6])  # pick-and-place: S5 placed, S6 released
     max_scale: Optional[float] = None  # ceiling on the continuous entries' pre-tanh std

@@ -137,7 +137,7 @@ class GripperFloor(nn.Module):
 
     Why: the gripper explores by its Bernoulli draw alone. From random weights the
     ``grab_action`` term (1 - p while nothing is held) drove p to ~0 in S1 while the EE sat
-    within grasp range half of the time, so closing was never tried (docs/pipeline_single.md).
+    within grasp range half of the time, so closing was never tried (docs/history/pipeline_single.md).
     No ceiling elsewhere: a held box is dropped by a single open draw. Where the box has been
     put down (S5) a held box drove p to ~0.9998 and opening was never tried either.
     """

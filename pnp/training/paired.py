@@ -1,4 +1,4 @@
-"""Two policies compared on the same trials (docs/evaluation.md).
+"""Two policies compared on the same trials (docs/guide/evaluation.md).
 
 Success is compared with McNemar's exact test (the discordant trials, binomial at 1/2) and a
 paired bootstrap interval of the difference in success rate; completion time with a paired

@@ -124,3 +124,18 @@ if __name__ == "__main__":
         sys.exit(__doc__)
     for p in plot_training(sys.argv[1], sys.argv[2] if len(sys.argv) == 3 else None):
         print(p)
+
+
+def plot_selection(result: dict, out: Path) -> None:
+    """Success per candidate checkpoint and selection seed, the chosen one marked (recipes/select_checkpoint.py)."""
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    its = [c["iteration"] for c in result["candidates"]]
+    for seed in result["seeds"]:
+        ax.plot(its, [100 * c["success"][str(seed)] for c in result["candidates"]], "o-", label=f"seed {seed}")
+    ax.axvline(result["selected_iteration"], color="k", ls=":", label="selected")
+    ax.set(xlabel="iteration of the last phase", ylabel="success (%)",
+           title=f"selection: {result['trials']} deterministic trials per seed")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)

@@ -1,4 +1,4 @@
-"""The evaluation protocol's seeds (docs/evaluation.md): which seed may inform which decision.
+"""The evaluation protocol's seeds (docs/guide/evaluation.md): which seed may inform which decision.
 
 Training seeds start runs. Selection seeds choose checkpoints, configurations and every other
 A/B. The development seed (12345, the reporting seed until 2026-12-03, when a review found it

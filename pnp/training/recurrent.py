@@ -6,7 +6,7 @@ again is still S3; a robot whose grasp failed after the box reached the goal is 
 S0), so it is a function of the episode so far, not of the state now. The dual student
 without it plateaus at 0.70-0.77 training success; with the stage as an input it reaches
 0.93, and with the stage recomputed from the exact state now (no latching) 0.74
-(docs/distillation.md). Memory is what is missing, and a GRU is the deployable form of it.
+(docs/history/distillation.md). Memory is what is missing, and a GRU is the deployable form of it.
 
 The GRU state travels in the tensordict: the actor reads ``HIDDEN`` (the state before this
 step) and ``"step_count"`` (0 on an episode's first step, where the state starts from

@@ -45,7 +45,7 @@ from pnp.training.tasks import make_env
 LIFTED, GRABBED = CONDITIONS.index("object_lifted"), CONDITIONS.index("object_grabbed")
 FALL = REWARD_TERMS.index("fall")
 # tipped_box: the box lies unheld on its side (up axis beyond 60 deg) without having been
-# lifted and dropped; most MuJoCo timeouts of run 6 ended so (docs/pipeline_single/failures.md).
+# lifted and dropped; most MuJoCo timeouts of run 6 ended so (docs/history/pipeline_single/failures.md).
 CAUSES = ("fall", "diverged", "dropped_box", "tipped_box", "timeout")
 TIPPED_TILT = math.pi / 3  # rad
 _BOX_X, _BOX_Y = OBS_FIELDS["object"]["box_x_axis"], OBS_FIELDS["object"]["box_y_axis"]
@@ -72,7 +72,7 @@ def evaluation_env_config(env: DictConfig, num_worlds: int, **env_overrides) -> 
     env.num_worlds, env.max_episode_steps = int(num_worlds), None
     env.start_range = list(START_RANGE)  # a policy trained on near starts is judged on all
     env.terminate_on_success = True  # a trial ends at its success (completion time)
-    env.paired_trials = True  # trial i's layout from (seed, i) alone (docs/evaluation.md)
+    env.paired_trials = True  # trial i's layout from (seed, i) alone (docs/guide/evaluation.md)
     for key, value in env_overrides.items():
         if key not in env:
             raise ValueError(f"evaluation: unknown env override {key!r}; env keys are {sorted(env)}")

@@ -4,92 +4,12 @@ TorchRL transforms) and the PPO update, for any training configuration.
     python recipes/analyze/profile_iteration.py experiment=single_pnp_pipeline iterations=3 out=runs/profile.json
     python recipes/analyze/profile_iteration.py backend=mujoco env.num_worlds=1024 collect.frames_per_batch=16384
 
-Arguments are those of recipes/train.py (hydra overrides) plus ``iterations`` (timed after
-one untimed warm-up iteration), ``out`` and ``threads``: torch's thread counts for collection
-and update, as pairs, e.g. ``threads=1/1,1/2,2/2``; each pair is profiled in turn in this
-process and reported with its ratio to the first. MuJoCo's pool runs on ``env.nthread``.
+The work is :mod:`pnp.analysis.profile_iteration` (its docstring says what and how).
 """
-from __future__ import annotations
-
-import json
 import sys
-import time
-from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_dir
-from tensordict.nn import InteractionType, set_interaction_type
+from pnp.analysis.profile_iteration import main
 
-from pnp.training.config import register
-from pnp.training.ppo import ppo_update
-from pnp.training.provenance import provenance
-from pnp.training.trainer import make_training
-
-CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "config")
-
-
-def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1) -> dict:
-    torch.manual_seed(int(cfg.seed))
-    env, models, loss = make_training(cfg)
-    optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
-    steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
-    carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
-    for it in range(iterations + 1):
-        t = {k: 0.0 for k in times}
-        out = []
-        torch.set_num_threads(collect_threads)
-        with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
-            for _ in range(steps):
-                t0 = time.perf_counter()
-                carried = models.actor(carried)
-                t1 = time.perf_counter()
-                td, carried = env.step_and_maybe_reset(carried)
-                t["policy_s"] += t1 - t0
-                t["env_step_s"] += time.perf_counter() - t1
-                out.append(td)
-        torch.set_num_threads(update_threads)
-        t0 = time.perf_counter()
-        ppo_update(torch.stack(out, -1), loss, optim, cfg)
-        t["ppo_update_s"] = time.perf_counter() - t0
-        if it:  # the first iteration warms up allocations and thread pools
-            times = {k: times[k] + t[k] / iterations for k in times}
-    env.close()
-    total = sum(times.values())
-    return {"collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
-            "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
-            "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
-            "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
-            "frames_per_s": steps * env.base_env.num_worlds / total}
-
-
-def main(argv: list[str]) -> dict:
-    opts = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv
-            if a.split("=", 1)[0] in ("iterations", "out", "threads")}
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = compose("train", overrides=[a for a in argv if a.split("=", 1)[0] not in opts])
-    pairs = [pair.split("/") for pair in opts.get("threads", "1/1").split(",")]
-    if not all(len(pair) == 2 and all(n.isdigit() and int(n) >= 1 for n in pair) for pair in pairs):
-        raise ValueError(f"threads={opts['threads']!r}: expected collect/update pairs such as 1/1,1/2")
-    pairs = [(int(c), int(u)) for c, u in pairs]
-    before = torch.get_num_threads()
-    try:
-        rows = [profile(cfg, int(opts.get("iterations", 3)), *pair) for pair in pairs]
-    finally:
-        torch.set_num_threads(before)
-    for row in rows:
-        row["time_ratio_to_first"] = row["seconds_per_iteration"] / rows[0]["seconds_per_iteration"]
-        print(f"torch threads collect {row['collect_threads']} update {row['update_threads']}: "
-              f"{row['seconds_per_iteration']:.2f} s per iteration (x{row['time_ratio_to_first']:.2f}), "
-              f"env {row['env_step_s']:.2f} s, update {row['ppo_update_s']:.2f} s")
-    result = {**rows[0], "runs": rows[1:], **provenance()}
-    out = Path(opts.get("out", "runs/profile_iteration.json"))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps(result, indent=1))
-    return result
-
-
-register()
 
 if __name__ == "__main__":
     main(sys.argv[1:])

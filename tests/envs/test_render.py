@@ -1,14 +1,11 @@
 """Offscreen rendering on the CPU (skipped where EGL/Mesa is not installed)."""
-import sys
 
 import numpy as np
 import pytest
 
 from pnp.envs.pnp_env import PnPEnv
-from tests.training._tiny import ROOT, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import render as render_recipe  # noqa: E402
+from tests.training._tiny import tiny_train
+from pnp.analysis import render_gif as render_recipe
 
 
 def test_render_frame_shows_the_scene():

@@ -3,15 +3,13 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "recipes"))
-import ablation_ee  # noqa: E402
+from pnp.studies import ablation_ee
 
 from pnp.training.checkpoint import load_checkpoint  # noqa: E402
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import pytest
 import torch
@@ -11,16 +10,14 @@ from tensordict import TensorDict
 from pnp.task import OBS_FIELDS
 from pnp.task.terms import CONDITIONS
 
-from tests.training._tiny import ROOT, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
-import analysis_cli  # noqa: E402
-import approach  # noqa: E402
-import box_contacts  # noqa: E402
-import grasp_losses  # noqa: E402
-import knock_overs  # noqa: E402
-import profile_iteration  # noqa: E402
-import swap_critic  # noqa: E402
+from tests.training._tiny import tiny_train
+from pnp.analysis import analysis_cli
+from pnp.analysis import approach
+from pnp.analysis import box_contacts
+from pnp.analysis import grasp_losses
+from pnp.analysis import knock_overs
+from pnp.analysis import profile_iteration
+from pnp.analysis import swap_critic
 
 
 def test_grasp_losses_counts_and_writes_provenance(tmp_path):
@@ -162,7 +159,7 @@ def test_a_swapped_critic_computes_what_it_computed_under_its_own_statistics():
 
 
 def test_training_curve_weights_by_episodes_and_stops_at_phases(tmp_path, capsys):
-    import training_curve
+    from pnp.analysis import training_curve
     rows = [{"phase": p, "iteration": i, "frames": 10 * i, "episodes": e, "success_rate": s,
              "final_stage_share/S0": 1.0 - s, "train/kl": 0.01, "train/lr": 1e-4}
             for p, i, e, s in [(0, 1, 1, 0.0), (0, 2, 3, 1.0), (0, 3, 2, 0.5), (1, 4, 0, float("nan")), (1, 5, 4, 0.25)]]

@@ -2,15 +2,12 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import torch
 
 from pnp.task import OBS_BLOCKS
-from tests.training._tiny import ROOT, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
-import saliency  # noqa: E402
+from tests.training._tiny import tiny_train
+from pnp.analysis import saliency
 
 
 def test_saliency_of_a_linear_toy_actor_is_its_weight_magnitudes():

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "recipes" / "analyze"))
-import stage_progression  # noqa: E402
+from pnp.analysis import stage_progression
 
 
 def _curve() -> tuple[np.ndarray, np.ndarray]:

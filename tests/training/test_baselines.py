@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 
 import pytest
 import torch
@@ -27,9 +26,7 @@ from pnp.training.tasks import schedule_args, schedule_of
 from pnp.training.trainer import make_training
 from pnp.transforms.baselines import SequentialSubtask, StageRewards
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import table1  # noqa: E402
+from pnp.studies import table1
 
 BENDIKAS = ["model.per_stage=bendikas", "curriculum.schedule=fixed"]
 MU = {t.name: t.mu for t in REWARD_TABLE}

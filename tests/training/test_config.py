@@ -45,7 +45,7 @@ def test_experiment_folder_holds_what_is_named():
     config names (and what those build on); records of A/Bs live in experiment/archive/."""
     named = "".join((ROOT / f).read_text() for f in ("README.md", "RESULTS.md", "Makefile", "results/quoted.yaml",
                                                      "recipes/sweep.yaml", "recipes/config/ablation_ee.yaml",
-                                                     "recipes/table1.py"))
+                                                     "pnp/studies/table1.py"))
     top = [name for name in EXPERIMENTS if "/" not in name]
     parents = {line.strip()[2:] for name in top for line in (EXPERIMENT_DIR / f"{name}.yaml").read_text().splitlines()
                if line.startswith("  - ") and "_self_" not in line and "/" not in line}

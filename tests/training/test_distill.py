@@ -5,7 +5,6 @@ loss is tested with the loss, in tests/losses/test_distillation.py.)"""
 from __future__ import annotations
 
 import json
-import sys
 
 import pytest
 import torch
@@ -20,9 +19,7 @@ from pnp.training.keys import LOC, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACH
 from pnp.training.rollout import load_policy
 from pnp.distill.student import FIELD_COLUMNS, Teacher, check_teacher, make_student_env, make_student_models
 from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import evaluate_student as evaluate_recipe  # noqa: E402
+from pnp.distill import evaluation as evaluate_recipe
 
 register()
 DROPPED = ("ego.arm_q", "ego.ee_pos", "ego.ee_yaw_sincos", "object.handles_from_ee")  # the default drop_fields

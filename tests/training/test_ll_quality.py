@@ -1,5 +1,4 @@
 """The learned low level's quality measurements (pnp.studies.ll_quality, recipes/ll_quality.py)."""
-import sys
 
 import pytest
 import torch
@@ -14,11 +13,9 @@ from pnp.studies.ll_quality import (
     Saturation, command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking,
 )
 from pnp.legs.locomotion import STAND, LegServo
-from tests.training._tiny import ROOT, compose_cfg
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import benchmark as benchmark_recipe  # noqa: E402
-import ll_quality as ll_quality_recipe  # noqa: E402
+from tests.training._tiny import compose_cfg
+from pnp.analysis import benchmark_env as benchmark_recipe
+from pnp.studies import ll_quality_report as ll_quality_recipe
 
 
 def stand(obs):

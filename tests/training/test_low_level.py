@@ -1,5 +1,4 @@
 """env.low_level=learned: a task=locomotion checkpoint walks the legs of the PnP env."""
-import sys
 
 import pytest
 import torch
@@ -11,7 +10,7 @@ from pnp.training.low_level import load_locomotion_policy
 from pnp.training.rollout import load_policy, run_trials
 from pnp.training.tasks import make_env, schedule_of
 from pnp.training.trainer import train
-from tests.training._tiny import ROOT, TINY, compose_cfg
+from tests.training._tiny import TINY, compose_cfg
 
 MUJOCO_TINY = [o for o in TINY if not o.startswith("backend=")]
 SERVO = ["env.locomotion.leg_kp=250", "env.locomotion.leg_kd=5", "env.locomotion.action_scale=0.8"]
@@ -60,8 +59,7 @@ def test_a_trained_high_level_is_evaluated_on_legs(locomotion_run, pnp_run, tmp_
     assert isinstance(pol.env.base_env.backend, LeggedMujocoBackend)
     records = run_trials(pol.env, pol.actor, 2)
     assert len(records) == 2 and all(r["cause"] == "timeout" for r in records)
-    sys.path.insert(0, str(ROOT / "recipes"))
-    import evaluate as evaluate_recipe
+    from pnp.training import evaluation as evaluate_recipe
 
     result = evaluate_recipe.evaluate(compose_cfg("evaluate", [
         f"checkpoint={pnp_run}", "trials=2", "env.num_worlds=2", "env.nthread=1", "env.max_episode_steps=4",
@@ -91,8 +89,7 @@ def test_wrong_low_level_settings_are_refused(locomotion_run, pnp_run):
 def test_a_teacher_is_rendered_walking(locomotion_run, pnp_run, tmp_path):
     """recipes/render.py --low-level-checkpoint: the GIF of a pick-and-place on legs."""
     pytest.importorskip("imageio")
-    sys.path.insert(0, str(ROOT / "recipes"))
-    import render as render_recipe
+    from pnp.analysis import render_gif as render_recipe
 
     try:
         from pnp.sim.render import WorldRenderer

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import pytest
 import torch
@@ -12,10 +11,8 @@ from omegaconf.errors import ConfigKeyError
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.config import ExitRule
 from pnp.training.pipeline import ExitCheck, phase_config, phase_frames, run_pipeline, total_frames
-from tests.training._tiny import ROOT, TINY, compose_cfg
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import evaluate as evaluate_recipe  # noqa: E402
+from tests.training._tiny import TINY, compose_cfg
+from pnp.training import evaluation as evaluate_recipe
 
 def _budgets(near: int, far: int) -> str:
     return (f"++phases={{near: {{max_frames: {near}, overrides: {{env.start_range: [0.6, 1.5]}}}},"

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 
 import pytest
 import torch
@@ -18,10 +17,8 @@ from pnp.studies.recovery import BoxDisplacement, choose_offsets, dropout_config
 from pnp.training.rollout import run_trials
 from pnp.distill.student import FIELD_COLUMNS, make_student_env
 from pnp.training.tasks import make_env
-from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import student_recovery as recovery_recipe  # noqa: E402
+from tests.training._tiny import TINY, compose_cfg, tiny_train
+from pnp.studies import student_recovery as recovery_recipe
 
 register()
 

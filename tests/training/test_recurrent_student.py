@@ -4,7 +4,6 @@ it over whole segments to the same outputs, and a run resumes bit for bit and ev
 from __future__ import annotations
 
 import json
-import sys
 
 import pytest
 import torch
@@ -16,10 +15,8 @@ from pnp.distill.config import register
 from pnp.training.keys import LOC, SCALE, STUDENT_OBS
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, init_state
 from pnp.distill.student import make_student_env, make_student_models
-from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import evaluate_student as evaluate_recipe  # noqa: E402
+from tests.training._tiny import TINY, compose_cfg, tiny_train
+from pnp.distill import evaluation as evaluate_recipe
 
 register()
 GRU = ["student.recurrent_cells=8", "task=dual_pnp"]

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 
 import pytest
 import torch
@@ -15,10 +14,8 @@ from pnp.training.keys import ACTION
 from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
 from pnp.distill.student import add_observation_noise
 from pnp.training.tasks import make_env
-from tests.training._tiny import ROOT, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import evaluate as evaluate_recipe  # noqa: E402
+from tests.training._tiny import compose_cfg, tiny_train
+from pnp.training import evaluation as evaluate_recipe
 
 
 def test_evaluate_recipe_writes_the_table_and_its_provenance(tmp_path):

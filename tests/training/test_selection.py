@@ -3,17 +3,14 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 
 import pytest
 
 from pnp.training.pipeline import run_pipeline
+from pnp.training.plots import plot_selection
 from pnp.training.selection import candidates, newest_folder, select, selected_checkpoint
-from tests.training._tiny import ROOT, TINY, compose_cfg, tiny_train
-
-sys.path.insert(0, str(ROOT / "recipes"))
-import evaluate as evaluate_recipe  # noqa: E402
-import select_checkpoint  # noqa: E402
+from tests.training._tiny import TINY, compose_cfg, tiny_train
+from pnp.training import evaluation as evaluate_recipe
 
 
 def test_candidates_are_the_newest_snapshots_and_the_last_checkpoint(tmp_path):
@@ -56,7 +53,7 @@ def test_selection_then_evaluation_of_the_selected_checkpoint(tmp_path):
     assert result["selected"] == best["checkpoint"] and "1_far" in best["checkpoint"]
     assert json.loads((run / "selection.json").read_text())["selected"] == best["checkpoint"]
     assert selected_checkpoint(run).as_posix() == best["checkpoint"]
-    select_checkpoint.plot(result, tmp_path / "selection.png")
+    plot_selection(result, tmp_path / "selection.png")
     assert (tmp_path / "selection.png").stat().st_size > 0
     ev = evaluate_recipe.evaluate(compose_cfg("evaluate", [
         f"checkpoint={run}", "selected=true", "trials=4", "env.num_worlds=4", "env.max_episode_steps=5",

@@ -1,7 +1,7 @@
 """Ways a TorchRL user wrapping their own env goes wrong with the curriculum keys: a group of the
 root batch (failed deep inside tensordict once stacked) and per-robot entries at the root (a bare
 KeyError) are refused at the first reset with a message that names the fix; a partial reset
-without the carried tensordict is TorchRL's contract, shown here as docs/own_env.md states it."""
+without the carried tensordict is TorchRL's contract, shown here as docs/guide/own_env.md states it."""
 from __future__ import annotations
 
 import pytest

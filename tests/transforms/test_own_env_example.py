@@ -1,4 +1,4 @@
-"""Runs the code of docs/own_env.md (the curriculum in your own env), from its markdown source."""
+"""Runs the code of docs/guide/own_env.md (the curriculum in your own env), from its markdown source."""
 from __future__ import annotations
 
 import re
@@ -9,7 +9,7 @@ import torch
 
 import pnp.transforms  # noqa: F401  # pay the torchrl import at collection, not in the test
 
-README = Path(__file__).resolve().parents[2] / "docs" / "own_env.md"
+README = Path(__file__).resolve().parents[2] / "docs" / "guide" / "own_env.md"
 TITLE = "# Use the curriculum in your own TorchRL env"
 
 

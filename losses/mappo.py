@@ -103,16 +103,17 @@ class PopArtMAPPOLoss(MAPPOLoss):
         k = self.tensor_keys
         return self.actor_network.module[-1].get_dist(tensordict.select(k.loc, k.scale))
 
-    def _log_weight(self, tensordict: TensorDictBase, adv_shape: torch.Size):
-        out = super()._log_weight(tensordict, adv_shape)
-        self.__dict__["_current_dist"] = out[1]  # the policy on this batch, for the KL in forward
-        return out
+    def current_dist(self, tensordict: TensorDictBase) -> D.Distribution:
+        """The current policy's distribution on the batch, through the actor's public
+        ``get_dist`` (on a shallow copy: the batch keeps the behaviour's loc and scale)."""
+        return self.actor_network.get_dist(tensordict.copy())
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # The actor's forward writes new loc/scale into a copy: the behaviour's stay here.
         behaviour = tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale)
         out = super().forward(tensordict)
-        current = self.__dict__.pop("_current_dist")
+        # The same network on the same inputs as inside MAPPOLoss's forward, so the same
+        # distribution: one more actor forward instead of reaching into TorchRL's internals.
+        current = self.current_dist(tensordict)
         old = self.behaviour_dist(behaviour)
         out.set("kl", policy_kl(old, current).mean().detach())
         if isinstance(current, TanhNormalGripper):  # which part of the policy the KL (and so the lr) answers to

@@ -17,7 +17,9 @@ Keys (multi-agent group ``"agents"``, A robots):
 ``terminate_on_success=False`` keeps an episode running after the box is released in the
 goal, so the S6 terms of Table II (released in goal, stage progress, arm in default pose)
 pay for staying there; with termination they would pay for one step, and every positive
-per-step reward the policy still collects in S5 would argue against releasing.
+per-step reward the policy still collects in S5 would argue against releasing. Training
+runs that way (``EnvConfig.terminate_on_success`` is False); this class's default, True, is
+the evaluation's (a trial ends at its success, which times its completion).
 
 The grasp entry is a probability p; the gripper gets a binary command (paper: "a binary
 command for the gripper"): it closes when p > 0.5 (the recipes' Bernoulli policy already

@@ -1,6 +1,6 @@
 """Train the high-level teacher with MAPPO and the dynamic reward curriculum (paper Sec. III).
 
-    python recipes/train.py                                   # one robot, MuJoCo, the schema defaults (pnp/training/config.py)
+    python recipes/train.py                                   # one robot, MuJoCo, the schema's defaults (pnp/training/config.py)
     python recipes/train.py experiment=dual_pnp_mujoco        # a quoted result's configuration
     python recipes/train.py experiment=single_pnp_pipeline out_dir=runs/main   # phases; rerun to resume
     python recipes/train.py backend=kinematic env.num_worlds=256 env.max_episode_steps=150

@@ -91,10 +91,10 @@ class StudentConfig:
     # A diagnostic, not the paper's student: the stage one-hot as a second input (how much of
     # a student's gap to its teacher the stage it cannot see is).
     sees_stage: bool = False
-    # 0: an MLP over the observation now. > 0: a GRU of this many cells over the episode's
-    # observations, its state read by the MLP beside them (pnp.training.recurrent: the stage
-    # is latched, a function of the episode so far).
-    recurrent_cells: int = 0
+    # > 0: a GRU of this many cells over the episode's observations, its state read by the MLP
+    # beside them (pnp.training.recurrent: the stage is latched, a function of the episode so
+    # far); both quoted students use 128. 0: an MLP over the observation now.
+    recurrent_cells: int = 128
     # > 0 (needs recurrent_cells): the GRU state also predicts the env's stage, a cross-entropy
     # of this weight in training; the deployed student reads no stage, as the critic's inputs.
     stage_loss_coeff: float = 0.0

@@ -38,7 +38,7 @@ def teacher(tmp_path_factory):
 
 
 def _cfg(teacher=None, *extra):
-    return compose_cfg("distill", [*TINY, *([f"distill.teacher={teacher}"] if teacher else []), *extra])
+    return compose_cfg("distill", [*TINY, "student.recurrent_cells=0", *([f"distill.teacher={teacher}"] if teacher else []), *extra])
 
 
 def _rows(run) -> list[dict]:
@@ -112,14 +112,14 @@ def test_teacher_labels_are_its_actor_on_the_clean_observation_and_stage(teacher
 def test_distillation_checkpoints_and_resumes_bit_for_bit(teacher, tmp_path):
     extra = [f"distill.teacher={teacher}", "env.max_episode_steps=5", "seed=3", "collect.roll_in_share=0.5",
              "collect.roll_in_max_steps=3", "noise.dropout.p=0.3"]
-    distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'straight'}", "total_iterations=3"]))
-    distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=2"]))
+    distill(compose_cfg("distill", [*TINY, "student.recurrent_cells=0", *extra, f"out_dir={tmp_path / 'straight'}", "total_iterations=3"]))
+    distill(compose_cfg("distill", [*TINY, "student.recurrent_cells=0", *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=2"]))
     assert load_checkpoint(tmp_path / "split" / "checkpoint.pt")["counters"]["iteration"] == 2
     # same folder: resumes; an edit outside the trainer's resume overrides would be ignored, so it is refused
     with pytest.raises(ValueError, match=r"started with other settings .*'distill.beta': \(1.0, 5.0\)"):
-        distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3",
+        distill(compose_cfg("distill", [*TINY, "student.recurrent_cells=0", *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3",
                                         "distill.beta=5"]))
-    distill(compose_cfg("distill", [*TINY, *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3"]))
+    distill(compose_cfg("distill", [*TINY, "student.recurrent_cells=0", *extra, f"out_dir={tmp_path / 'split'}", "total_iterations=3"]))
     a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt") for run in ("straight", "split"))
     assert a["counters"]["iteration"] == b["counters"]["iteration"] == 3
     assert "transforms.3.held" in a["curriculum"] and "transforms.4.history" in a["curriculum"]  # noise, history

@@ -80,7 +80,7 @@ def test_offsets_keep_clear_of_the_bases_or_take_the_clearest():
 
 
 def test_dropout_settings_are_checked_and_only_change_the_dropouts():
-    cfg = compose_cfg("distill", TINY)
+    cfg = compose_cfg("distill", [*TINY, "student.recurrent_cells=0"])
     out = dropout_config(cfg, 0.05, 0.5, 2.0, ["object.box_pos", "object.box_x_axis"])
     assert out.noise.dropout.p == 0.05 and out.noise.dropout.fields == ["object.box_pos", "object.box_x_axis"]
     assert cfg.noise.dropout.p == 0.01 and out.noise.sigma == cfg.noise.sigma
@@ -100,7 +100,7 @@ def test_dropout_settings_are_checked_and_only_change_the_dropouts():
 
 def test_recipe_writes_both_comparisons_and_the_provenance(tmp_path):
     tiny_train(tmp_path / "teacher", "total_iterations=1")
-    distill(compose_cfg("distill", [*TINY, f"distill.teacher={tmp_path / 'teacher'}", f"out_dir={tmp_path / 'run'}",
+    distill(compose_cfg("distill", [*TINY, "student.recurrent_cells=0", f"distill.teacher={tmp_path / 'teacher'}", f"out_dir={tmp_path / 'run'}",
                                     "total_iterations=1"]))
     result = recovery_recipe.evaluate(compose_cfg("student_recovery", [
         f"checkpoint={tmp_path / 'run'}", "trials=4", "env.num_worlds=4", "env.max_episode_steps=8",

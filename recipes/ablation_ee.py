@@ -13,6 +13,9 @@ import hydra
 from omegaconf import DictConfig
 
 from pnp.studies.ablation_ee import run_ablation
+from pnp.training.config import register
+
+register()
 
 
 @hydra.main(config_path="config", config_name="ablation_ee", version_base="1.3")

@@ -32,8 +32,8 @@ from mujoco import rollout
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from pnp.training.provenance import provenance  # noqa: E402
 
-from pnp.sim.box import SINGLE_ROBOT_BOXES, HandleBox  # noqa: E402
 from pnp.legs.arm_gravity import ArmGravity  # noqa: E402
+from pnp.sim.box import SINGLE_ROBOT_BOXES, HandleBox  # noqa: E402
 from pnp.sim.robot import ARM_COMPENSATED, ARM_DEFAULT, ARM_JOINTS, FINGER_STROKE, LEG_JOINTS, Quadruped  # noqa: E402
 from pnp.sim.scene import PnPArena, build_scene  # noqa: E402
 

@@ -22,8 +22,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from pnp.distill.trainer import distill
 from pnp.distill.config import register
+from pnp.distill.trainer import distill
 
 register()
 

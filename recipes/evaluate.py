@@ -13,7 +13,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from pnp.training.config import register
 from pnp.training.evaluation import evaluate
+
+register()
 
 
 @hydra.main(config_path="config", config_name="evaluate", version_base="1.3")

@@ -13,6 +13,9 @@ import hydra
 from omegaconf import DictConfig
 
 from pnp.distill.evaluation import evaluate
+from pnp.training.config import register
+
+register()
 
 
 @hydra.main(config_path="config", config_name="evaluate_student", version_base="1.3")

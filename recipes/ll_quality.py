@@ -16,6 +16,9 @@ import torch
 from omegaconf import DictConfig
 
 from pnp.studies.ll_quality_report import measure
+from pnp.training.config import register
+
+register()
 
 
 @hydra.main(config_path="config", config_name="ll_quality", version_base="1.3")

@@ -12,8 +12,11 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from pnp.training.config import register
 from pnp.training.plots import plot_selection
 from pnp.training.selection import select
+
+register()
 
 
 @hydra.main(config_path="config", config_name="select_checkpoint", version_base="1.3")

@@ -14,6 +14,9 @@ import hydra
 from omegaconf import DictConfig
 
 from pnp.studies.student_recovery import evaluate
+from pnp.training.config import register
+
+register()
 
 
 @hydra.main(config_path="config", config_name="student_recovery", version_base="1.3")

@@ -11,6 +11,9 @@ import hydra
 from omegaconf import DictConfig
 
 from pnp.studies.table1 import run_table1
+from pnp.training.config import register
+
+register()
 
 
 @hydra.main(config_path="config", config_name="table1", version_base="1.3")

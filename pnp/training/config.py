@@ -380,5 +380,11 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 
 def register() -> None:
-    """Register the schema with hydra's ConfigStore as ``train_schema`` (train.yaml's base)."""
-    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    """Register the schemas with hydra's ConfigStore: ``train_schema`` (train.yaml's base) and
+    each recipe's ``<recipe>_schema`` (``pnp.training.recipe_configs``)."""
+    from pnp.training.recipe_configs import RECIPE_SCHEMAS
+
+    store = ConfigStore.instance()
+    store.store(name="train_schema", node=TrainConfig)
+    for name, schema in RECIPE_SCHEMAS.items():
+        store.store(name=f"{name}_schema", node=schema)

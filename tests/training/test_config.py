@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 
 from pnp.sim.box import DUAL_ROBOT_BOXES
 from pnp.task.terms import CONDITIONS
+from pnp.distill.config import register as register_distill
 from pnp.training.config import changed_settings, migrate
 from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy
@@ -159,3 +160,14 @@ def test_the_near_pipelines_mujoco_phase_is_mujoco_explore_on_near_starts():
     near, explore = (phase_config(cfg, list(cfg.pipeline).index(n), None) for n in ("mujoco_near", "mujoco_explore"))
     differ = changed_settings(near, explore, {"out_dir", "total_iterations"})
     assert sorted(differ) == ["env.max_episode_steps", "env.start_range"]
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "recipes" / "config").glob("*.yaml")))
+def test_every_top_level_config_has_a_schema_and_composes(name):
+    """Each recipe's YAML composes against its schema, which refuses a key it does not declare."""
+    register_distill()  # distill_schema
+    overrides = {"train": ["out_dir=/nonexistent/run"], "distill": ["out_dir=/nonexistent/run"]}.get(name, [])
+    cfg = compose_cfg(name, overrides)
+    assert OmegaConf.get_type(cfg) is not dict, f"{name}.yaml has no schema in its defaults"
+    with pytest.raises(ConfigCompositionException, match="not_a_key"):
+        compose_cfg(name, [*overrides, "not_a_key=1"])

@@ -29,7 +29,7 @@ from pnp.distill.config import NoiseConfig, distill_config
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import AgentNet, ObsNorm, PopArt, fold_constant_inputs, make_models
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, STEP_COUNT, RecurrentStudentNet
-from pnp.training.rollout import evaluation_env_config, run_trials, summarise
+from pnp.training.rollout import evaluation_env_config, run_trials, trained_models
 from pnp.training.tasks import make_env, stage_graph
 from pnp.transforms import ColumnHistory, ObservationNoise
 
@@ -251,11 +251,7 @@ class Teacher:
         self.cfg = migrate(ckpt["cfg"])
         check_teacher(cfg, self.cfg, self.path)
         self.critic_state = ckpt["critic"]
-        models = make_models(self.cfg.model, self.cfg.loss, env)
-        models.actor.load_state_dict(ckpt["actor"])
-        self.folded = []
-        if cfg.env.backend != self.cfg.env.backend and isinstance(models.obs_norm, ObsNorm):
-            self.folded = fold_constant_inputs(models.obs_norm, [models.actor_net])  # as load_policy does
+        models, self.folded = trained_models(ckpt, self.cfg, env, cfg.env.backend)  # it labels in the student's env
         self.actor = models.actor.requires_grad_(False).eval()
         self._label = TensorDictModule(models.actor_net, in_keys=[OBS, STAGE_ONE_HOT],
                                        out_keys=[TEACHER_LOC, TEACHER_SCALE])

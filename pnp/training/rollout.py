@@ -38,7 +38,7 @@ from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
 from pnp.training.config import KinematicOptions, migrate
 from pnp.training.keys import ACTION, STAGE
-from pnp.training.models import ObsNorm, dist_from_params, fold_constant_inputs, make_models
+from pnp.training.models import Models, ObsNorm, dist_from_params, fold_constant_inputs, make_models
 from pnp.training.recurrent import carry_state, init_state, recurrent_net
 from pnp.training.tasks import make_env
 
@@ -93,19 +93,26 @@ def load_policy(checkpoint: str | Path, num_worlds: int, seed: int, **env_overri
     ``None`` values keep the default)."""
     ckpt = load_checkpoint(Path(checkpoint))
     cfg = migrate(ckpt["cfg"])
-    trained_backend = cfg.env.backend
     env = evaluation_env_config(cfg.env, num_worlds, **env_overrides)
     seed_everything(seed)
     tenv = make_env(env, cfg.curriculum, seed)
-    models = make_models(cfg.model, cfg.loss, tenv)
+    models, folded = trained_models(ckpt, cfg, tenv, env.backend)
+    return LoadedPolicy(tenv, models.actor, ckpt, cfg, folded)
+
+
+def trained_models(ckpt: dict, cfg: DictConfig, env: TransformedEnv, backend: str) -> tuple[Models, list[int]]:
+    """A teacher checkpoint's models in ``env`` (built from ``cfg``, its actor's weights loaded)
+    and the observation entries folded because ``env`` runs on ``backend``, not the one the
+    checkpoint trained on:
+    inputs constant on the training backend (the kinematic one has no wrist roll, box tilt or
+    tilt rates) move here, and their untrained first-layer weights would scramble the policy.
+    Folding keeps its function on the training data and blinds it to them."""
+    models = make_models(cfg.model, cfg.loss, env)
     models.actor.load_state_dict(ckpt["actor"])
     folded = []
-    if env.backend != trained_backend and isinstance(models.obs_norm, ObsNorm):
-        # Inputs constant on the training backend (the kinematic one has no wrist roll, box
-        # tilt or tilt rates) move here; their untrained first-layer weights would scramble
-        # the policy. Folding keeps its function on the training data and blinds it to them.
+    if backend != ckpt["cfg"]["env"]["backend"] and isinstance(models.obs_norm, ObsNorm):
         folded = fold_constant_inputs(models.obs_norm, [models.actor_net])
-    return LoadedPolicy(tenv, models.actor, ckpt, cfg, folded)
+    return models, folded
 
 
 def _act(actor, td: TensorDictBase, groups: tuple[str, ...]) -> TensorDictBase:

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig
 
 from pnp.training.collect import windowed_mean
+from pnp.training.hooks import RunHook
 from pnp.training.stage_ensemble import StageEnsemble
 from pnp.transforms.baselines import SequentialSubtask
 
@@ -41,10 +42,13 @@ def _copy_adam(optim: torch.optim.Optimizer, src: torch.nn.Module, dst: torch.nn
             optim.state.pop(b, None)
 
 
-class SequentialSchedule:
+class SequentialSchedule(RunHook):
     """Moves Bendikas' sub-task on after each iteration (:meth:`update`); state in
     :meth:`state_dict` (the trainer checkpoints it and carries it over a warm start, so a
-    pipeline's next phase goes on with the same sub-task and its frame count)."""
+    pipeline's next phase goes on with the same sub-task and its frame count). A hook on the
+    runner (``pnp.training.hooks``)."""
+
+    key = "subtasks"
 
     def __init__(self, cfg: DictConfig, subtask: SequentialSubtask, actor: StageEnsemble, critic: StageEnsemble,
                  optim: torch.optim.Optimizer):
@@ -70,6 +74,16 @@ class SequentialSchedule:
         k = self.subtask
         self.critic.route_all_to(k)
         self.env_subtask.set_subtask(k)
+
+    def on_warm_start(self, runner, init: dict) -> None:
+        if self.key in init:  # a pipeline's next phase: the same sub-task
+            self.load_state_dict(init[self.key])
+
+    def on_ready(self, runner) -> None:
+        self.sync()
+
+    def on_row(self, runner, batch, row: dict) -> dict:
+        return self.update(row, batch.numel())  # the sub-task that trained, and whether it ended here
 
     def update(self, row: dict, frames: int) -> dict:
         """After an iteration of ``frames`` frames with metrics ``row``: move on if the

@@ -21,7 +21,9 @@ from torchrl.envs import TransformedEnv
 
 from pnp.losses.erskine import CooperativeMAPPOLoss
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.training.tasks import schedule_args
+from pnp.baselines.bendikas import SequentialSchedule
+from pnp.training.hooks import RunHook
+from pnp.training.tasks import schedule_args, schedule_of
 from pnp.transforms.baselines import SequentialSubtask, StageRewards
 
 # The StageRewardSchedule arguments among the task's reward configuration.
@@ -57,6 +59,14 @@ def use_baseline_schedule(env: TransformedEnv, cfg: DictConfig) -> None:
         schedule = StageRewards(high=kwargs["high"], completed_share=float(cfg.baseline.erskine.completed_share), **base)
     env.transform.pop()
     env.append_transform(schedule)
+
+
+def method_hooks(cfg: DictConfig, runner) -> list[RunHook]:
+    """What the method adds to the runner's loop: Bendikas' sub-task schedule; nothing else."""
+    if cfg.model.per_stage != "bendikas":
+        return []
+    m = runner.models
+    return [SequentialSchedule(cfg.baseline.bendikas, schedule_of(runner.env), m.actor_net, m.critic_net, runner.optim)]
 
 
 def baseline_loss(cfg: DictConfig) -> tuple[type[PopArtMAPPOLoss], dict]:

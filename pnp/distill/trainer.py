@@ -3,9 +3,9 @@ observations, the frozen teacher labels the same states from the clean observati
 stage, and PPO on the fixed-scale reward plus beta * KL to the teacher updates the student
 (``pnp.losses.DistillationPPOLoss``).
 
-Everything else is the teacher's trainer: collection (``collect``), the PPO update
-(``ppo_update``), the loop with its logging, checkpoint timing and signals
-(:meth:`Trainer.run`), checkpoints and their restoration. A run folder that holds a
+Everything else is the teacher's runner (:class:`~pnp.training.trainer.Trainer`): collection,
+the PPO update, the loop with its logging, checkpoint timing and signals, checkpoints and
+their restoration; the teacher's labels and the KL weight are a hook on it. A run folder that holds a
 checkpoint resumes from it, bit for bit (the noise and history state is in the env
 transforms' state).
 """
@@ -13,17 +13,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.losses.distillation import DistillationPPOLoss
-from pnp.training.checkpoint import load_checkpoint, load_module, seed_everything
-from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
+from pnp.training.checkpoint import load_checkpoint, load_module
+from pnp.training.collect import desync_episodes
+from pnp.training.hooks import RunHook
 from pnp.training.config import changed_settings
 from pnp.distill.config import distill_config
-from pnp.training.keys import OBS, ROLL_IN, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
+from pnp.training.keys import OBS, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import ObsNorm
-from pnp.training.ppo import ppo_update
 from pnp.training.recurrent import init_state
 from pnp.distill.student import Teacher, make_student_env, make_student_models
 from pnp.training.trainer import RESUME_OVERRIDES, Trainer, make_loss, truncate_metrics
@@ -69,17 +68,35 @@ def check_config(cfg: DictConfig) -> None:
                          f"got {kl.anneal_iterations}")
 
 
-class DistillTrainer(Trainer):
-    """One distillation run (or its resumption) in ``cfg.out_dir``; :meth:`Trainer.run`
-    runs it. ``models`` are the student's, ``teacher`` the frozen labeller."""
+class TeacherLabels(RunHook):
+    """The frozen teacher labels each batch from the clean observation and stage, and the KL
+    weight follows its schedule (``distill.beta`` to ``beta_final``)."""
 
-    def __init__(self, cfg: DictConfig):  # builds what Trainer.run, checkpoint and _restore use
+    def __init__(self, teacher: Teacher, kl: DictConfig):
+        self.teacher, self.kl = teacher, kl
+
+    def before_collect(self, runner) -> None:
+        runner.loss.beta = beta_at(self.kl, runner.counters["iteration"])
+
+    def on_batch(self, runner, batch) -> None:
+        self.teacher.label(batch)
+
+    def on_row(self, runner, batch, row: dict) -> dict:
+        return {"beta": runner.loss.beta}
+
+
+class DistillTrainer(Trainer):
+    """One distillation run (or its resumption) in ``cfg.out_dir``: the runner with the
+    student's env, models and loss and the teacher's labels as a hook."""
+
+    @staticmethod
+    def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         cfg, ckpt = resume_config(cfg)
         check_config(cfg)
-        self.cfg, self.out_dir = cfg, Path(cfg.out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
-        seed_everything(int(cfg.seed))
+        return cfg, ckpt
+
+    def build(self) -> None:
+        cfg = self.cfg
         self.env = make_student_env(cfg, int(cfg.seed))
         self.teacher = Teacher(cfg, self.env)
         student = cfg.student
@@ -88,22 +105,21 @@ class DistillTrainer(Trainer):
         self.loss = make_loss(cfg.loss, self.models, DistillationPPOLoss, beta=beta_at(cfg.distill, 0),
                               direction=str(cfg.distill.direction))
         self.loss.set_keys(teacher_loc=TEACHER_LOC, teacher_scale=TEACHER_SCALE)
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
-        self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
-        share = float(cfg.collect.roll_in_share)
-        n_worlds = self.env.base_env.num_worlds
-        self.roll_in = MeanRollIn(n_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
-        if ckpt is not None:
-            self._restore(ckpt)
-        else:
-            self._start()
-        self._open_log(ckpt, default_name=f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}")
 
-    def _norms(self) -> list[tuple[ObsNorm, tuple]]:
-        """Each running normalisation with the observation it follows."""
+    def method_hooks(self) -> list[RunHook]:
+        return [TeacherLabels(self.teacher, self.cfg.distill)]
+
+    def log_name(self) -> str:
+        cfg = self.cfg
+        return f"student_{cfg.env.backend}_{cfg.env.num_robots}r_s{cfg.seed}"
+
+    def norms(self) -> list[tuple[ObsNorm, tuple]]:
         m = self.models
         pairs = [(m.actor_net.obs_norm, STUDENT_OBS), (m.critic_norm, OBS)]
         return [(n, key) for n, key in pairs if isinstance(n, ObsNorm)]
+
+    def metrics(self, batch) -> dict:
+        return {}  # fixed scales: no rho to log
 
     def _start(self) -> None:
         cfg, m = self.cfg, self.models
@@ -119,23 +135,9 @@ class DistillTrainer(Trainer):
         self.carried = init_state(self.env.reset(), m.actor)
         if cfg.collect.desync_episodes:
             self.carried = desync_episodes(self.carried, cfg.env.max_episode_steps)
-        for norm, key in self._norms():  # first statistics from the initial layouts
+        for norm, key in self.norms():  # first statistics from the initial layouts
             if key == STUDENT_OBS or not cfg.distill.critic_from_teacher:
                 norm.update(self.carried[key])
-
-    def iteration(self, steps: int) -> dict:
-        """Collect with the student, label with the teacher, update, log one iteration."""
-        beta = self.loss.beta = beta_at(self.cfg.distill, self.counters["iteration"])
-        batch, self.carried = collect(self.env, self.models.actor, self.carried, steps, self.roll_in)
-        self.teacher.label(batch)
-        losses = ppo_update(batch, self.loss, self.optim, self.cfg)
-        for norm, key in self._norms():
-            norm.update(batch[key])
-        self.counters["iteration"] += 1
-        self.counters["frames"] += batch.numel()
-        extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
-        row = {**self.counters, **episode_metrics(batch), **losses, "beta": beta, **extra}
-        return row
 
 
 def distill(cfg: DictConfig) -> dict:

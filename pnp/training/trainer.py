@@ -23,21 +23,21 @@ from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 from tqdm import tqdm
 
 from pnp.losses.mappo import PopArtMAPPOLoss
-from pnp.baselines.per_stage import baseline_loss, use_baseline_schedule
+from pnp.baselines.per_stage import baseline_loss, method_hooks, use_baseline_schedule
 from pnp.training.checkpoint import (
     adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, rng_state, save_checkpoint,
     seed_everything, set_rng_state,
 )
-from pnp.training.collect import MeanRollIn, collect, desync_episodes, episode_metrics
+from pnp.training.collect import collect, desync_episodes, episode_metrics
 from pnp.training.config import changed_settings, migrate
 from pnp.training.keys import (
-    ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, ROLL_IN, SCALE, VALUE, VALUE_TARGET,
+    ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, SCALE, VALUE, VALUE_TARGET,
 )
-from pnp.training.models import fold_constant_inputs, make_models
+from pnp.training.models import ObsNorm, fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
 from pnp.training.provenance import launch_record
 from pnp.training.ppo import ppo_update
-from pnp.baselines.bendikas import SequentialSchedule
+from pnp.training.hooks import RollIns, RunHook
 from pnp.training.tasks import make_env, schedule_of
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
@@ -169,12 +169,12 @@ def truncate_metrics(path: Path, iteration: int) -> None:
 
 
 class Trainer:
-    """One training run (or its resumption) in ``cfg.out_dir``."""
-
-    subtasks: SequentialSchedule | None = None  # Bendikas et al.: one sub-task at a time
+    """One training run (or its resumption) in ``cfg.out_dir``: the runner. What only some
+    runs do is in its ``hooks`` (``pnp.training.hooks``): roll-ins, a baseline's schedule,
+    a student's teacher."""
 
     def __init__(self, cfg: DictConfig):
-        cfg, ckpt = resume_config(cfg)
+        cfg, ckpt = self.resume_config(cfg)
         if cfg.out_dir is None:
             raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
         if ckpt is None and (Path(cfg.out_dir) / "checkpoint.pt").is_file():
@@ -185,21 +185,45 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
         seed_everything(int(cfg.seed))
-        self.env, self.models, self.loss = make_training(cfg)
+        self.build()
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
-        if cfg.model.per_stage == "bendikas":
-            self.subtasks = SequentialSchedule(cfg.baseline.bendikas, schedule_of(self.env), self.models.actor_net,
-                                               self.models.critic_net, self.optim)
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
         share = float(cfg.collect.roll_in_share)
-        self.roll_in = MeanRollIn(self.env.base_env.num_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
+        roll_ins = RollIns(self.env.base_env.num_worlds, share, int(cfg.collect.roll_in_max_steps)) if share else None
+        self.roll_in = roll_ins.roll_in if roll_ins else None  # collection reads it
+        self.hooks = ([roll_ins] if roll_ins else []) + self.method_hooks()
         if ckpt is not None:
             self._restore(ckpt)
         else:
             self._start()
-        if self.subtasks is not None:
-            self.subtasks.sync()
-        self._open_log(ckpt)
+        for hook in self.hooks:
+            hook.on_ready(self)
+        self._open_log(ckpt, self.log_name())
+
+    # What a kind of run changes (the distillation overrides these) --------------------------
+    @staticmethod
+    def resume_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
+        return resume_config(cfg)
+
+    def build(self) -> None:
+        """``env``, ``models`` and ``loss`` of the run."""
+        self.env, self.models, self.loss = make_training(self.cfg)
+
+    def method_hooks(self) -> list[RunHook]:
+        return method_hooks(self.cfg, self)
+
+    def log_name(self) -> str | None:
+        return None
+
+    def norms(self) -> list[tuple[ObsNorm, str]]:
+        """Each running observation normalisation with the batch entry it follows."""
+        return [(self.models.obs_norm, OBS)] if self.models.obs_norm is not None else []
+
+    def metrics(self, batch: TensorDictBase) -> dict:
+        """The curriculum's scales rho_j per reward term, when the schedule has them."""
+        schedule = schedule_of(self.env)
+        rho = schedule.rho_by_term() if hasattr(schedule, "rho_by_term") else {}
+        return {f"rho/{k}": v for k, v in rho.items()}
 
     def _open_log(self, ckpt: dict | None, default_name: str | None = None) -> None:
         """The run's launches and logger (the same wandb run on a resume)."""
@@ -222,10 +246,9 @@ class Trainer:
             print(f"resume: the checkpoint's last step has {stale} in another shape (an entry added since): zeros")
         self.counters = dict(ckpt["counters"])
         set_rng_state(ckpt["rng"])
-        if self.roll_in is not None and "roll_in" in ckpt:
-            self.roll_in.length.copy_(ckpt["roll_in"])
-        if self.subtasks is not None:
-            self.subtasks.load_state_dict(ckpt["subtasks"])
+        for hook in self.hooks:
+            if hook.key is not None and hook.key in ckpt:
+                hook.load_state_dict(ckpt[hook.key])
         truncate_metrics(self.metrics_path, self.counters["iteration"])
 
     def _start(self) -> None:
@@ -240,8 +263,8 @@ class Trainer:
             # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
             # (entropy -19) policy to KL 74 in its first iteration (measured).
             load_optimiser(self.optim, init["optim"])
-            if self.subtasks is not None and "subtasks" in init:  # a pipeline's next phase: the same sub-task
-                self.subtasks.load_state_dict(init["subtasks"])
+            for hook in self.hooks:
+                hook.on_warm_start(self, init)
             if m.obs_norm is not None and cfg.warm_start_fold_constant:
                 print(f"warm start: folded constant observation entries "
                       f"{fold_constant_inputs(m.obs_norm, [m.actor_net, m.critic_net])}")
@@ -268,8 +291,7 @@ class Trainer:
             "curriculum": self.env.transform.state_dict(), "env": self.env.base_env.get_state(),
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,
             "launches": self.launches,
-            **({"roll_in": self.roll_in.length.clone()} if self.roll_in is not None else {}),
-            **({"subtasks": self.subtasks.state_dict()} if self.subtasks is not None else {}),
+            **{hook.key: hook.state_dict() for hook in self.hooks if hook.key is not None},
         })
 
     def snapshot(self) -> Path:
@@ -281,18 +303,19 @@ class Trainer:
 
     def iteration(self, steps: int) -> dict:
         """Collect, update, log one iteration; returns its metrics row."""
+        for hook in self.hooks:
+            hook.before_collect(self)
         batch, self.carried = collect(self.env, self.models.actor, self.carried, steps, self.roll_in)
+        for hook in self.hooks:
+            hook.on_batch(self, batch)
         losses = ppo_update(batch, self.loss, self.optim, self.cfg)
-        if self.models.obs_norm is not None:
-            self.models.obs_norm.update(batch[OBS])
+        for norm, key in self.norms():
+            norm.update(batch[key])
         self.counters["iteration"] += 1
         self.counters["frames"] += batch.numel()
-        schedule = schedule_of(self.env)
-        rho = schedule.rho_by_term() if hasattr(schedule, "rho_by_term") else {}
-        extra = {"roll_in_frames": float(batch[ROLL_IN].float().mean())} if self.roll_in is not None else {}
-        row = {**self.counters, **episode_metrics(batch), **losses, **extra, **{f"rho/{k}": v for k, v in rho.items()}}
-        if self.subtasks is not None:  # the sub-task that trained, and whether it ended here
-            row.update(self.subtasks.update(row, batch.numel()))
+        row = {**self.counters, **episode_metrics(batch), **losses, **self.metrics(batch)}
+        for hook in self.hooks:
+            row.update(hook.on_row(self, batch, row))
         return row
 
     def run(self, stop_when: Callable[[dict], bool] | None = None, bar: tqdm | None = None) -> dict:

@@ -17,7 +17,7 @@ between sub-tasks; Erskine et al. built on soft actor-critic); these are our PPO
 from __future__ import annotations
 
 from omegaconf import DictConfig
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Transform, TransformedEnv
 
 from pnp.losses.erskine import CooperativeMAPPOLoss
 from pnp.losses.mappo import PopArtMAPPOLoss
@@ -30,8 +30,66 @@ from pnp.transforms.baselines import SequentialSubtask, StageRewards
 _SCHEDULE_KEYS = ("term_names", "term_stage", "mu", "fixed_weights", "n_stages", "stage_progress_term", "stage_gates")
 
 
+class PerStageMethod:
+    """A per-stage baseline in our trainer (one subclass per method, its settings in
+    ``baseline.<name>``, registered in :data:`METHODS` under its ``model.per_stage`` name):
+    the reward schedule that replaces ours, the loss, and the hooks it adds to the runner.
+    Its per-stage actor and critic ensembles are built by ``pnp.training.models.make_models``."""
+
+    name: str
+
+    def schedule(self, cfg: DictConfig, high, base: dict) -> Transform:
+        raise NotImplementedError
+
+    def loss(self, cfg: DictConfig) -> tuple[type[PopArtMAPPOLoss], dict]:
+        return PopArtMAPPOLoss, {}
+
+    def hooks(self, cfg: DictConfig, runner) -> list[RunHook]:
+        return []
+
+
+class Bendikas(PerStageMethod):
+    """One sub-task at a time, each policy starting from the last (``baseline.bendikas``)."""
+
+    name = "bendikas"
+
+    def schedule(self, cfg: DictConfig, high, base: dict) -> Transform:
+        return SequentialSubtask(high=high, gamma=float(cfg.loss.gamma),
+                                 success_bonus=float(cfg.baseline.bendikas.success_bonus), **base)
+
+    def hooks(self, cfg: DictConfig, runner) -> list[RunHook]:
+        m = runner.models
+        return [SequentialSchedule(cfg.baseline.bendikas, schedule_of(runner.env), m.actor_net, m.critic_net,
+                                   runner.optim)]
+
+
+class Erskine(PerStageMethod):
+    """Every stage's critic, the advantages of a stage and the next mixed (``baseline.erskine``)."""
+
+    name = "erskine"
+
+    def schedule(self, cfg: DictConfig, high, base: dict) -> Transform:
+        return StageRewards(high=high, completed_share=float(cfg.baseline.erskine.completed_share), **base)
+
+    def loss(self, cfg: DictConfig) -> tuple[type[PopArtMAPPOLoss], dict]:
+        return CooperativeMAPPOLoss, {"mix": float(cfg.baseline.erskine.mix)}
+
+
+METHODS: dict[str, PerStageMethod] = {m.name: m for m in (Bendikas(), Erskine())}
+
+
+def method_of(cfg: DictConfig) -> PerStageMethod | None:
+    """The baseline ``model.per_stage`` names; None for ours ("none")."""
+    name = cfg.model.per_stage
+    if name == "none":
+        return None
+    if name not in METHODS:
+        raise ValueError(f"model.per_stage must be 'none' or one of {sorted(METHODS)}, got {name!r}")
+    return METHODS[name]
+
+
 def is_baseline(cfg: DictConfig) -> bool:
-    return cfg.model.per_stage != "none"
+    return method_of(cfg) is not None
 
 
 def _check(cfg: DictConfig) -> None:
@@ -47,30 +105,23 @@ def _check(cfg: DictConfig) -> None:
 def use_baseline_schedule(env: TransformedEnv, cfg: DictConfig) -> None:
     """Replace ``env``'s reward schedule (last in its Compose) by the baseline's; nothing
     for ours. The baseline's is a FixedScales subclass built from the same arguments."""
-    if not is_baseline(cfg):
+    method = method_of(cfg)
+    if method is None:
         return
     _check(cfg)
     _, kwargs = schedule_args(cfg.curriculum, cfg.env.task)
-    base = {k: kwargs[k] for k in _SCHEDULE_KEYS}
-    if cfg.model.per_stage == "bendikas":
-        schedule = SequentialSubtask(high=kwargs["high"], gamma=float(cfg.loss.gamma),
-                                     success_bonus=float(cfg.baseline.bendikas.success_bonus), **base)
-    else:
-        schedule = StageRewards(high=kwargs["high"], completed_share=float(cfg.baseline.erskine.completed_share), **base)
+    schedule = method.schedule(cfg, kwargs["high"], {k: kwargs[k] for k in _SCHEDULE_KEYS})
     env.transform.pop()
     env.append_transform(schedule)
 
 
 def method_hooks(cfg: DictConfig, runner) -> list[RunHook]:
-    """What the method adds to the runner's loop: Bendikas' sub-task schedule; nothing else."""
-    if cfg.model.per_stage != "bendikas":
-        return []
-    m = runner.models
-    return [SequentialSchedule(cfg.baseline.bendikas, schedule_of(runner.env), m.actor_net, m.critic_net, runner.optim)]
+    """What the method adds to the runner's loop (Bendikas' sub-task schedule)."""
+    method = method_of(cfg)
+    return method.hooks(cfg, runner) if method is not None else []
 
 
 def baseline_loss(cfg: DictConfig) -> tuple[type[PopArtMAPPOLoss], dict]:
     """The loss class and its extra arguments (for ``trainer.make_loss``)."""
-    if cfg.model.per_stage == "erskine":
-        return CooperativeMAPPOLoss, {"mix": float(cfg.baseline.erskine.mix)}
-    return PopArtMAPPOLoss, {}
+    method = method_of(cfg)
+    return method.loss(cfg) if method is not None else (PopArtMAPPOLoss, {})

@@ -13,6 +13,7 @@ compute stages and rewards in the env and store them.
 """
 from __future__ import annotations
 
+from ._graph import StageGraph
 from ._history import ColumnHistory
 from ._noise import ObservationNoise
 from ._reward_scaling import (
@@ -34,6 +35,7 @@ __all__ = [
     "LiuMax",
     "LiuMin",
     "ObservationNoise",
+    "StageGraph",
     "StageRewardSchedule",
     "StageTransition",
     "make_reward_schedule",

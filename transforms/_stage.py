@@ -17,7 +17,7 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot
 from torchrl.envs.transforms import Transform
 from torchrl.envs.transforms.utils import _get_reset
 
-from pnp.task.stage_graph import StageGraph
+from ._graph import StageGraph
 
 from ._checks import _check_agent_shape, _check_group_batch, _ClonesOwnBuffers, _EnvOnly, _fmt, _get
 

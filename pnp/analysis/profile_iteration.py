@@ -19,7 +19,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensordict.nn import InteractionType, set_interaction_type
 
-from pnp.training.config import RECIPES_CONFIG, register
+from pnp.training.choices import RECIPES_CONFIG
+from pnp.training.config import register
 from pnp.training.ppo import ppo_update
 from pnp.training.provenance import provenance
 from pnp.training.trainer import make_training

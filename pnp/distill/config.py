@@ -27,6 +27,7 @@ seen for U[0.2, 2] s; one starts after a seen step with probability 0.01 (about 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -49,6 +50,9 @@ def _sigma() -> Dict[str, Dict[str, float]]:
         "neighbour": {"base_xy": mocap, "yaw_sincos": mocap, "ee_pos": mocap, "gripper_opening": mocap},
     }
 
+
+
+Direction = StrEnum("Direction", ["forward", "reverse"])
 
 @dataclass
 class DropoutConfig:
@@ -106,7 +110,7 @@ class KLConfig:
 
     teacher: Optional[str] = None  # the teacher's checkpoint (file or run folder), frozen
     beta: float = 1.0
-    direction: str = "forward"  # forward: KL(teacher || student) | reverse: KL(student || teacher)
+    direction: Direction = Direction.forward  # forward: KL(teacher || student) | reverse: KL(student || teacher)
     # null: beta stays; else beta moves linearly to beta_final over anneal_iterations
     beta_final: Optional[float] = None
     anneal_iterations: int = 0

@@ -34,7 +34,8 @@ from omegaconf import DictConfig
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from pnp.training.config import RECIPES_CONFIG, register  # noqa: E402
+from pnp.training.choices import RECIPES_CONFIG  # noqa: E402
+from pnp.training.config import register  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402
 from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E402

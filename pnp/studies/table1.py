@@ -42,7 +42,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from pnp.task.terms import STAGES  # noqa: E402
 from pnp.training.collect import windowed_mean  # noqa: E402
-from pnp.training.config import RECIPES_CONFIG, register  # noqa: E402
+from pnp.training.choices import RECIPES_CONFIG  # noqa: E402
+from pnp.training.config import register  # noqa: E402
 from pnp.training.pipeline import load_state, phase_dir, pipeline_phases, run_pipeline, total_frames  # noqa: E402
 from pnp.training.plots import load_metrics  # noqa: E402
 from pnp.training.provenance import provenance  # noqa: E402

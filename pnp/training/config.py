@@ -7,20 +7,18 @@ Defaults live here and nowhere else: code reads ``cfg.<group>.<key>`` without fa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.sim.layout import START_RANGE
+from pnp.training.choices import (
+    Backend, EpisodeStage, GraspDist, HandleOrder, LoggerBackend, LowLevel, LrSchedule, ValueNorm,
+)
 from pnp.legs.locomotion import ACTION_SCALE, TRACKING_SIGMA
 from pnp.sim.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
-
-
-# The recipes' hydra configs (a checkout's; the studies and tools compose from them).
-RECIPES_CONFIG = str(Path(__file__).resolve().parents[2] / "recipes" / "config")
 
 
 @dataclass
@@ -68,7 +66,7 @@ class LocomotionConfig:
 @dataclass
 class EnvConfig:
     task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot) | locomotion (the leg policy)
-    backend: str = "mujoco"  # mujoco | kinematic
+    backend: Backend = Backend.mujoco
     num_worlds: int = 64
     num_robots: int = 1
     kinematic: KinematicOptions = field(default_factory=KinematicOptions)  # all off on MuJoCo
@@ -78,7 +76,7 @@ class EnvConfig:
     start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
     # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.
     terminate_on_success: bool = False
-    handle_order: str = "identity"  # identity | own_first | own_last (ours, pnp.task)
+    handle_order: HandleOrder = HandleOrder.identity  # ours (pnp.task)
     handle_claim: bool = False  # each robot keeps the handle it was given at the episode start (ours)
     # Evaluation sets it: trial i's layout depends on (seed, i) only (docs/guide/evaluation.md).
     paired_trials: bool = False
@@ -87,7 +85,7 @@ class EnvConfig:
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
     # ideal: planar base, IK arm (pnp.sim.executor). learned: legs walked by a locomotion policy
     # (pnp.legs.backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
-    low_level: str = "ideal"
+    low_level: LowLevel = LowLevel.ideal
     low_level_checkpoint: Optional[str] = None
     # MuJoCo only, m/s per finger: finger targets ramp at this speed. null: they jump, and
     # the servos drive the pads through a handle bar in one substep (docs/history/pipeline_single.md).
@@ -114,7 +112,7 @@ class CurriculumConfig:
     # lambda(e) of Eq. 2: peak (highest stage of the episode) | final (stage it ends in).
     # Under final, grasp-drop-regrasp episodes ended in S0-S2 by chance and the S2 terms
     # stayed at mu_min for 1600 iterations; under peak lifting followed within 30.
-    episode_stage: str = "peak"
+    episode_stage: EpisodeStage = EpisodeStage.peak
     # null: the task's backward edges; else [from, to] stage names, e.g. without
     # placed -> on_goal (MuJoCo's grasp flickers with the box on the floor).
     backward_edges: Optional[List[Any]] = None
@@ -132,7 +130,7 @@ class ModelConfig:
     actor_cells: List[int] = field(default_factory=lambda: [256, 256])
     critic_cells: List[int] = field(default_factory=lambda: [256, 256])
     init_scale: float = 1.0  # policy std (pre-tanh) at initialisation
-    grasp_dist: str = "bernoulli"  # bernoulli (losses/distributions.py) | tanh_normal (a probability)
+    grasp_dist: GraspDist = GraspDist.bernoulli  # bernoulli (losses/distributions.py) | tanh_normal (a probability)
     min_scale: float = 0.0  # > 0: floor on every continuous entry's pre-tanh std
     # > 0: floor on the grasp entry's pre-tanh std, tanh_normal gripper only (the Bernoulli's
     # ignores its scale); the single-robot chain began with it (docs/history/train_single/LINEAGE.md).
@@ -166,14 +164,14 @@ class LossConfig:
     loss_critic_type: str = "l2"
     gamma: float = 0.99
     lmbda: float = 0.95
-    value_norm: str = "popart"  # popart | none
+    value_norm: ValueNorm = ValueNorm.popart
     popart_beta: float = 0.98  # per-iteration EMA of the return statistics (~50 iterations)
 
 
 @dataclass
 class OptimConfig:
     lr: float = 1.0e-3  # initial lr when adaptive
-    lr_schedule: str = "adaptive"  # adaptive (KL-driven, as rsl_rl) | fixed
+    lr_schedule: LrSchedule = LrSchedule.adaptive  # adaptive: KL-driven, as rsl_rl
     desired_kl: float = 0.01
     min_lr: float = 1.0e-5
     max_lr: float = 1.0e-2
@@ -228,7 +226,7 @@ class BaselineConfig:
 
 @dataclass
 class LoggerConfig:
-    backend: str = "wandb"  # wandb | csv
+    backend: LoggerBackend = LoggerBackend.wandb
     project: str = "pnp-curriculum"
     exp_name: Optional[str] = None  # null: <backend>_<robots>r_<schedule>_s<seed>
     offline: bool = True

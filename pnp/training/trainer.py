@@ -122,7 +122,7 @@ def make_logger(cfg: DictConfig, out_dir: Path, wandb_id: str | None, default_na
     if cfg.logger.backend == "wandb":
         # config= at init: offline runs drop config updates made after init.
         return WandbLogger(name, offline=bool(cfg.logger.offline), save_dir=str(out_dir), project=cfg.logger.project,
-                           id=wandb_id, config=OmegaConf.to_container(cfg, resolve=True))
+                           id=wandb_id, config=OmegaConf.to_container(cfg, resolve=True, enum_to_str=True))
     raise ValueError(f"logger.backend must be 'wandb' or 'csv', got {cfg.logger.backend!r}")
 
 
@@ -286,7 +286,7 @@ class Trainer:
     def checkpoint(self) -> None:
         m = self.models
         save_checkpoint(self.ckpt_path, {
-            "cfg": OmegaConf.to_container(self.cfg, resolve=True), "counters": dict(self.counters),
+            "cfg": OmegaConf.to_container(self.cfg, resolve=True, enum_to_str=True), "counters": dict(self.counters),
             "actor": m.actor.state_dict(), "critic": m.critic.state_dict(), "optim": self.optim.state_dict(),
             "curriculum": self.env.transform.state_dict(), "env": self.env.base_env.get_state(),
             "carried": self.carried, "rng": rng_state(), "wandb_id": self.wandb_id,

@@ -171,3 +171,15 @@ def test_every_top_level_config_has_a_schema_and_composes(name):
     assert OmegaConf.get_type(cfg) is not dict, f"{name}.yaml has no schema in its defaults"
     with pytest.raises(ConfigCompositionException, match="not_a_key"):
         compose_cfg(name, [*overrides, "not_a_key=1"])
+
+
+def test_closed_choices_are_refused_when_composed():
+    """Typed fields: a value outside an enum's is refused by hydra, naming the choices, and a
+    checkpoint stores the plain strings (no enum class in the pickle)."""
+    with pytest.raises(ConfigCompositionException, match="env.backend=bullet") as err:
+        compose_cfg("train", ["env.backend=bullet"])
+    assert "expected one of [mujoco, kinematic]" in str(err.value.__cause__)
+    cfg = compose_cfg("train", ["env.backend=kinematic", "loss.value_norm=none"])
+    assert cfg.env.backend == "kinematic" and f"{cfg.env.backend}" == "kinematic" and cfg.loss.value_norm == "none"
+    stored = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
+    assert type(stored["env"]["backend"]) is str and migrate(stored).env.backend == "kinematic"

@@ -1,6 +1,7 @@
 """env.low_level=learned: a task=locomotion checkpoint walks the legs of the PnP env."""
 
 import pytest
+from hydra.errors import ConfigCompositionException
 import torch
 
 from pnp.envs.pnp_env import PnPEnv
@@ -74,7 +75,7 @@ def test_wrong_low_level_settings_are_refused(locomotion_run, pnp_run):
         cfg = compose_cfg("train", [*MUJOCO_TINY, "env.nthread=1", "env.num_worlds=1", *extra])
         return make_env(cfg.env, cfg.curriculum, seed=0)
 
-    with pytest.raises(ValueError, match="env.low_level must be one of"):
+    with pytest.raises(ConfigCompositionException, match="wheels"):  # a typed field: refused at compose time
         env_of("backend=mujoco", "env.low_level=wheels")
     with pytest.raises(ValueError, match="needs env.low_level_checkpoint"):
         env_of("backend=mujoco", "env.low_level=learned")

@@ -37,3 +37,10 @@ def test_tests_import_the_package_not_the_recipes():
     offenders = [str(p.relative_to(ROOT)) for p in _python(("tests",))
                  if "sys.path.insert(0, str(ROOT / \"recipes\"" in p.read_text()]
     assert not offenders, offenders
+
+
+def test_readme_is_a_short_guide_beside_the_results_and_the_architecture():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150, len(lines)
+    assert not [n for n, line in enumerate(lines, 1) if len(line) > 120]
+    assert (ROOT / "RESULTS.md").is_file() and (ROOT / "docs" / "guide" / "architecture.md").is_file()

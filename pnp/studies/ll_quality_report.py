@@ -23,7 +23,7 @@ from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.config import migrate
 from pnp.studies.ll_quality import command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking
 from pnp.training.low_level import load_locomotion_policy
-from pnp.training.provenance import provenance, write_result
+from pnp.training.provenance import check_clean, provenance, write_result
 
 NEVER = 1e6  # s: a resample or push interval that never comes in a test
 
@@ -61,6 +61,7 @@ def table_md(r: dict) -> str:
 
 
 def measure(cfg: DictConfig) -> dict:
+    check_clean(cfg.out, cfg.dirty_reason)
     t0 = time.monotonic()
     path = resolve_checkpoint(cfg.checkpoint, cfg.runs_root)
     ckpt = load_checkpoint(path)
@@ -98,6 +99,6 @@ def measure(cfg: DictConfig) -> dict:
               "settings": OmegaConf.to_container(cfg), "locomotion": OmegaConf.to_container(base),
               "checkpoint": str(path), "checkpoint_iteration": int(ckpt["counters"]["iteration"]),
               "env_steps": int(ckpt["counters"]["frames"]), "seed": seed, "wall_s": time.monotonic() - t0,
-              **provenance()}
+              **provenance(**({"dirty_reason": cfg.dirty_reason} if cfg.dirty_reason else {}))}
     out = Path(cfg.out) if cfg.out else path.parent / "ll_quality.json"
     return write_result(result, out, table_md(result))

@@ -98,8 +98,10 @@ def evaluation_record(ckpt: dict, seed: int, dirty_reason: str | None) -> dict:
 
 def write_result(result: dict, out, markdown: str) -> dict:
     """``result`` as JSON at ``out`` and ``markdown`` beside it (``.md``); returns ``result``
-    with both paths added."""
+    with both paths added. A figure for results/ from a dirty tree needs its ``dirty_reason``
+    (the recipes check before the work; this is the last line)."""
     out = Path(out)
+    check_clean(out, result.get("dirty_reason"))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     out.with_suffix(".md").write_text(markdown)

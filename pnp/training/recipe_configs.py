@@ -30,37 +30,35 @@ class EvalEnv:
 
 
 @dataclass
-class EvaluateConfig:
+class TrialsConfig:
+    """What every evaluation of trials reads: a checkpoint, the trials and their seed, where to write."""
+
     checkpoint: str = MISSING
     runs_root: str = MISSING
-    phase: Optional[str] = MISSING
-    selected: bool = MISSING
     trials: int = MISSING
     seed: Any = MISSING  # an integer, or a protocol name (pnp.training.protocol)
-    compare: Optional[str] = MISSING
     dirty_reason: Optional[str] = MISSING
-    method: Optional[str] = MISSING
     out: Optional[str] = MISSING
     progress: bool = MISSING
-    displacement: Any = MISSING  # null, or {delay_s, distance, clearance}
-    noise_scale: Optional[float] = MISSING
-    dropout_p: Optional[float] = MISSING
-    sample: Optional[List[str]] = MISSING
     env: EvalEnv = field(default_factory=EvalEnv)
 
 
 @dataclass
-class EvaluateStudentConfig:
-    checkpoint: str = MISSING
-    runs_root: str = MISSING
-    trials: int = MISSING
-    seed: Any = MISSING
-    dirty_reason: Optional[str] = MISSING
-    out: Optional[str] = MISSING
-    progress: bool = MISSING
+class EvaluateConfig(TrialsConfig):
+    phase: Optional[str] = MISSING
+    selected: bool = MISSING
+    compare: Optional[str] = MISSING
+    method: Optional[str] = MISSING
+    displacement: Any = MISSING  # null, or {delay_s, distance, clearance}
     noise_scale: Optional[float] = MISSING
     dropout_p: Optional[float] = MISSING
-    env: EvalEnv = field(default_factory=EvalEnv)
+    sample: Optional[List[str]] = MISSING
+
+
+@dataclass
+class EvaluateStudentConfig(TrialsConfig):
+    noise_scale: Optional[float] = MISSING
+    dropout_p: Optional[float] = MISSING
 
 
 @dataclass
@@ -79,17 +77,9 @@ class Dropout:
 
 
 @dataclass
-class StudentRecoveryConfig:
-    checkpoint: str = MISSING
-    runs_root: str = MISSING
-    trials: int = MISSING
-    seed: Any = MISSING
-    dirty_reason: Optional[str] = MISSING
-    out: Optional[str] = MISSING
-    progress: bool = MISSING
+class StudentRecoveryConfig(TrialsConfig):
     displacement: Displacement = field(default_factory=Displacement)
     dropout: Dropout = field(default_factory=Dropout)
-    env: EvalEnv = field(default_factory=EvalEnv)
 
 
 @dataclass
@@ -134,6 +124,7 @@ class LLQualityConfig:
     checkpoint: str = MISSING
     runs_root: str = MISSING
     seed: int = MISSING
+    dirty_reason: Optional[str] = MISSING
     out: Optional[str] = MISSING
     nthread: int = MISSING
     velocity: VelocityGrid = field(default_factory=VelocityGrid)

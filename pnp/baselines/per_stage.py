@@ -88,10 +88,6 @@ def method_of(cfg: DictConfig) -> PerStageMethod | None:
     return METHODS[name]
 
 
-def is_baseline(cfg: DictConfig) -> bool:
-    return method_of(cfg) is not None
-
-
 def _check(cfg: DictConfig) -> None:
     cur = cfg.curriculum
     if cur.schedule != "fixed" or not cur.stage_rewards:

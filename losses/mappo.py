@@ -103,17 +103,22 @@ class PopArtMAPPOLoss(MAPPOLoss):
         k = self.tensor_keys
         return self.actor_network.module[-1].get_dist(tensordict.select(k.loc, k.scale))
 
-    def current_dist(self, tensordict: TensorDictBase) -> D.Distribution:
-        """The current policy's distribution on the batch, through the actor's public
-        ``get_dist`` (on a shallow copy: the batch keeps the behaviour's loc and scale)."""
-        return self.actor_network.get_dist(tensordict.copy())
+    def _get_cur_log_prob(self, tensordict: TensorDictBase, params=None):
+        # TorchRL's extension point for the current policy's log-probability: its distribution
+        # is kept, so that the KL below needs no second actor forward (~15 % of an update).
+        log_prob, dist, is_composite = super()._get_cur_log_prob(tensordict, params)
+        if params is None:  # the current parameters, not a delayed actor's
+            self.__dict__["_current"] = dist
+        return log_prob, dist, is_composite
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         behaviour = tensordict.select(self.tensor_keys.loc, self.tensor_keys.scale)
+        self.__dict__["_current"] = None
         out = super().forward(tensordict)
-        # The same network on the same inputs as inside MAPPOLoss's forward, so the same
-        # distribution: one more actor forward instead of reaching into TorchRL's internals.
-        current = self.current_dist(tensordict)
+        current = self.__dict__.pop("_current")
+        if current is None:
+            raise RuntimeError("MAPPOLoss.forward did not build the current policy's distribution "
+                               "through _get_cur_log_prob (a TorchRL change?)")
         old = self.behaviour_dist(behaviour)
         out.set("kl", policy_kl(old, current).mean().detach())
         if isinstance(current, TanhNormalGripper):  # which part of the policy the KL (and so the lr) answers to

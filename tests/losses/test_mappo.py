@@ -51,6 +51,18 @@ def test_kl_grows_when_the_policy_moves_and_matches_the_gaussian_formula(setup):
     torch.testing.assert_close(torch.tensor(kl, dtype=torch.float64), (gauss + bern).mean(), rtol=1e-4, atol=1e-6)
 
 
+def test_one_actor_forward_per_loss_call(setup):
+    """The KL reads the distribution MAPPOLoss built, not a second forward of the actor."""
+    _, models, loss, batch = setup
+    calls = []
+    handle = models.actor.module[0].register_forward_hook(lambda *_: calls.append(1))
+    try:
+        loss(batch)
+    finally:
+        handle.remove()
+    assert len(calls) == 1
+
+
 def test_tanh_normal_kl_is_the_pre_tanh_gaussians():
     cfg = compose_cfg("train", [*TINY, "model.grasp_dist=tanh_normal"])
     env = make_env(cfg.env, cfg.curriculum, 0)

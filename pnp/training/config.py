@@ -264,6 +264,16 @@ class PhaseConfig:
 
 
 @dataclass
+class ThreadsConfig:
+    """torch's intra-op threads, which the trainer sets and prints rather than leave to torch
+    (one per core, which cost 5-7x beside one other process: issue 64). null: the cores this
+    process may use. MuJoCo's pool is ``env.nthread``."""
+
+    collect: Optional[int] = 1  # the policy's forward on the batch, and the kinematic backend's physics
+    update: Optional[int] = None  # the PPO update
+
+
+@dataclass
 class RunConfig:
     """What every on-policy run has (training and distillation): its length, checkpoints,
     folder and the env, reward, model, loss, optimiser, collection and logger sections."""
@@ -285,6 +295,7 @@ class RunConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    threads: ThreadsConfig = field(default_factory=ThreadsConfig)
 
 
 @dataclass

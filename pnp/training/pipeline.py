@@ -23,12 +23,12 @@ import math
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
-from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import windowed_mean
 from pnp.training.config import changed_settings, migrate
 from pnp.training.plots import plot_pipeline
+from pnp.training.progress import PhasePlan, PipelineProgress
 from pnp.training.trainer import RESUMABLE, Trainer
 
 STATE = "pipeline.json"
@@ -126,10 +126,17 @@ def _budgets(cfg: DictConfig, done: list[dict]) -> list[int]:
             for i, f in enumerate(_planned_frames(cfg, done))]
 
 
-def _bar_total(cfg: DictConfig, done: list[dict]) -> int:
-    """Iterations of the whole pipeline: finished phases as run, the others at their budgets
-    (an exit by rule shrinks it, or moves frames to a later phase that trains until a total)."""
-    return sum(d["iterations"] for d in done) + sum(_budgets(cfg, done)[len(done):])
+def _plans(cfg: DictConfig, done: list[dict]) -> list[PhasePlan]:
+    """The phases as the progress lines see them: finished ones as run, the others at their
+    budgets (an exit by rule shrinks one, or moves frames to a phase that trains until a total)."""
+    plans = []
+    for i, ((name, _), frames) in enumerate(zip(pipeline_phases(cfg), _planned_frames(cfg, done))):
+        plan = PhasePlan(name, str(_phase_value(cfg, i, "env.backend")), frames,
+                         int(_phase_value(cfg, i, "collect.frames_per_batch")))
+        if i < len(done):
+            plan.frames, plan.wall_s, plan.finished = int(done[i]["frames"]), float(done[i]["wall_s"]), True
+        plans.append(plan)
+    return plans
 
 
 def phase_frames(cfg: DictConfig, index: int, done: list[dict] = ()) -> int:
@@ -245,8 +252,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
             raise ValueError(f"{out_dir / STATE}: finished phase {d['name']!r} ran with overrides {d['overrides']}, "
                              f"this pipeline declares {OmegaConf.to_container(phase.overrides)}; use another out_dir")
     _reopen_grown_budget(done, _budgets(cfg, done))
-    bar = tqdm(total=_bar_total(cfg, done), disable=not cfg.progress, desc="pipeline")
-    bar.update(sum(d["iterations"] for d in done))
+    progress = PipelineProgress(_plans(cfg, done), bool(cfg.progress))
     for index in range(len(done), len(names)):
         source = Path(done[-1]["checkpoint"]) if done else None
         pcfg = phase_config(cfg, index, source, done)
@@ -261,17 +267,15 @@ def run_pipeline(cfg: DictConfig) -> dict:
             counters = ckpt["counters"]
             rows = [r for r in _read_rows(ckpt_path.parent / "metrics.jsonl") if r["iteration"] <= counters["iteration"]]
         check = ExitCheck(phases[index][1].exit, rows)
-        bar.set_description(f"pipeline {index + 1}/{len(names)} {names[index]}")
         if check.met():  # it stopped by its rule after its last checkpoint, before the record
             by_rule = True
-            bar.update(counters["iteration"])
         else:
             trainer = Trainer(pcfg)
-            bar.update(trainer.counters["iteration"])
-            result = trainer.run(stop_when=check, bar=bar)
+            progress.start_phase(index, trainer.counters, check)
+            result = trainer.run(stop_when=check, progress=progress)
             counters, by_rule, ckpt_path = trainer.counters, result["stopped_by_rule"], trainer.ckpt_path
             if result["stopped_by_signal"] or (not by_rule and counters["iteration"] < int(pcfg.total_iterations)):
-                bar.close()  # a signal or the wall-time limit: the same command resumes here
+                progress.close()  # a signal or the wall-time limit: the same command resumes here
                 return {"out_dir": str(out_dir), "phases": done, "finished": False}
         done.append({
             "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
@@ -280,7 +284,6 @@ def run_pipeline(cfg: DictConfig) -> dict:
         })
         (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
         plot_pipeline(out_dir, done)
-        bar.total = _bar_total(cfg, done)
-        bar.refresh()
-    bar.close()
+        progress.finish_phase(index, done[-1], _planned_frames(cfg, done))
+    progress.close()
     return {"out_dir": str(out_dir), "phases": done, "finished": True}

@@ -37,14 +37,17 @@ from pnp.training.models import ObsNorm, fold_constant_inputs, make_models
 from pnp.training.plots import plot_training
 from pnp.training.provenance import launch_record
 from pnp.training.ppo import ppo_update
+from pnp.training.progress import RunProgress
+from pnp.training.threads import available_cores, torch_threads
 from pnp.training.hooks import RollIns, RunHook
 from pnp.training.tasks import make_env, schedule_of
 
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
 # env.nthread too: MuJoCo steps each world on its own, so the thread count does not change
-# the numbers, and a run may move to a machine with fewer cores; the logger's name names only.
+# the numbers, and a run may move to a machine with fewer cores (torch's threads likewise,
+# though its sums may round differently); the logger's name names only.
 RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "snapshot_every", "progress",
-                    "env.nthread", "logger.exp_name")
+                    "env.nthread", "threads.collect", "threads.update", "logger.exp_name")
 
 
 def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = PopArtMAPPOLoss,
@@ -185,6 +188,9 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.ckpt_path, self.metrics_path = self.out_dir / "checkpoint.pt", self.out_dir / "metrics.jsonl"
         seed_everything(int(cfg.seed))
+        self.threads = torch_threads(cfg.threads)
+        tqdm.write(f"torch threads: {self.threads['collect']} collecting, {self.threads['update']} in the update "
+              f"({available_cores()} cores available; cfg.threads)")
         self.build()
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
@@ -305,9 +311,11 @@ class Trainer:
         """Collect, update, log one iteration; returns its metrics row."""
         for hook in self.hooks:
             hook.before_collect(self)
+        torch.set_num_threads(self.threads["collect"])
         batch, self.carried = collect(self.env, self.models.actor, self.carried, steps, self.roll_in)
         for hook in self.hooks:
             hook.on_batch(self, batch)
+        torch.set_num_threads(self.threads["update"])
         losses = ppo_update(batch, self.loss, self.optim, self.cfg)
         for norm, key in self.norms():
             norm.update(batch[key])
@@ -318,20 +326,20 @@ class Trainer:
             row.update(hook.on_row(self, batch, row))
         return row
 
-    def run(self, stop_when: Callable[[dict], bool] | None = None, bar: tqdm | None = None) -> dict:
+    def run(self, stop_when: Callable[[dict], bool] | None = None, progress=None) -> dict:
         """Train to ``total_iterations`` (or the wall-time limit, a signal, or until
         ``stop_when(row)`` holds after an iteration); returns the run folder, checkpoint
-        path, how it stopped and the last metrics. ``bar``: a progress bar to advance
-        (a pipeline's, over all its phases) instead of this run's own."""
+        path, how it stopped and the last metrics. ``progress``: what each metrics row is shown
+        on (a pipeline's ``PipelineProgress``) instead of this run's own bar."""
         cfg = self.cfg
         steps = max(1, int(cfg.collect.frames_per_batch) // self.env.base_env.num_worlds)
         total, every_s = int(cfg.total_iterations), 60.0 * float(cfg.checkpoint_every_min)
         max_wall = math.inf if cfg.max_wall_hours is None else 3600.0 * float(cfg.max_wall_hours)
         wall0, t0 = self.counters["wall_s"], time.monotonic()
         last_ckpt, row, by_rule = t0, {}, False
-        own_bar = bar is None
+        own_bar = progress is None
         if own_bar:
-            bar = tqdm(total=total, initial=self.counters["iteration"], disable=not cfg.progress, desc="train")
+            progress = RunProgress(total, self.counters["iteration"], bool(cfg.progress))
         stop_signal = StopOnSignal()
         try:
             while self.counters["iteration"] < total:
@@ -341,9 +349,8 @@ class Trainer:
                     f.write(json.dumps(row) + "\n")
                 self.logger.log_metrics({k: v for k, v in row.items() if math.isfinite(v)},
                                         step=self.counters["iteration"])
-                bar.set_postfix(success=f"{row['success_rate']:.2f}", stage=f"{row['mean_end_stage']:.2f}", refresh=False)
-                bar.update(1)
                 by_rule = stop_when is not None and stop_when(row)
+                progress.update(row)
                 stop = (self.counters["iteration"] >= total or self.counters["wall_s"] >= max_wall
                         or stop_signal.received or by_rule)
                 snap = int(cfg.snapshot_every) > 0 and self.counters["iteration"] % int(cfg.snapshot_every) == 0
@@ -359,7 +366,7 @@ class Trainer:
         finally:
             stop_signal.restore()
         if own_bar:
-            bar.close()
+            progress.close()
         plot_training(self.metrics_path, self.out_dir)
         if cfg.logger.backend == "wandb":
             self.logger.experiment.finish()

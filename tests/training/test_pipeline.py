@@ -106,36 +106,35 @@ def test_a_phase_until_a_total_gets_the_frames_an_earlier_rule_left(tmp_path):
         phase_frames(short, 1)
 
 
-def test_the_progress_bar_counts_a_phase_ended_by_its_rule_as_run(tmp_path, monkeypatch):
+def test_the_progress_lines_count_a_phase_ended_by_its_rule_as_run(tmp_path, monkeypatch):
     import pnp.training.pipeline as pipeline
 
-    bars = []
+    seen = []
 
-    class Bar:  # records what the pipeline's bar was told
-        def __init__(self, total, **_):
-            self.total, self.n = total, 0
-            bars.append(self)
+    class Recorded(pipeline.PipelineProgress):  # keeps what the pipeline told its progress lines
+        def __init__(self, plans, enabled):
+            super().__init__(plans, enabled)
+            seen.append(self)
+            self.iterations = 0
 
-        def update(self, n=1):
-            self.n += n
-            assert self.n <= self.total, f"the bar ran past its total: {self.n} > {self.total}"
+        def update(self, row):
+            super().update(row)
+            self.iterations += 1
 
-        def set_description(self, *_, **__):
-            pass
-
-        refresh = close = set_postfix = set_description
-
-    monkeypatch.setattr(pipeline, "tqdm", Bar)
+    monkeypatch.setattr(pipeline, "PipelineProgress", Recorded)
     rule = "++phases={near: {max_frames: 120, exit: {metric: frames, min: 40, window: 1}}}"  # 1 of 3 iterations
     out = run_pipeline(_cfg(tmp_path / "run", rule))
-    assert bars[0].total == bars[0].n == sum(p["iterations"] for p in out["phases"]) == 1 + 3
-    run_pipeline(_cfg(tmp_path / "run", rule))  # finished: the bar starts full at what was run
-    assert bars[1].total == bars[1].n == 4
-    # A phase until a total takes over the frames the rule left: 1 + 4 iterations, not 1 + 2,
-    # and the total says so before that phase runs
+    plans = seen[0].plans
+    assert all(p.finished for p in plans) and seen[0].iterations == 1 + 3
+    assert [p.frames for p in plans] == [p["frames"] for p in out["phases"]]
+    run_pipeline(_cfg(tmp_path / "run", rule))  # finished: nothing runs, every phase counted as run
+    assert seen[1].iterations == 0 and all(p.finished for p in seen[1].plans)
+    assert [p.frames for p in seen[1].plans] == [p["frames"] for p in out["phases"]]
+    # A phase until a total takes over the frames the rule left: its budget grows once near ends.
     until = rule.replace("}}}", "}}, far: {until_total_frames: 200, overrides: {env.num_worlds: 8}}}")
     out = run_pipeline(_cfg(tmp_path / "until", until))
-    assert bars[2].total == bars[2].n == sum(p["iterations"] for p in out["phases"]) == 1 + 4
+    assert seen[2].plans[1].budget_frames == 200 - out["phases"][0]["frames"]
+    assert seen[2].iterations == sum(p["iterations"] for p in out["phases"]) == 1 + 4
 
 
 def test_exit_check_weights_by_episodes_and_names_unknown_metrics():

@@ -38,6 +38,28 @@ def _actions(env, steps, seed):
     return [lo + (hi - lo) * (base + 0.1 * torch.rand(shape[1:], generator=g)).clamp(0, 1) for _ in range(steps)]
 
 
+def record_physics(phys) -> tuple[list, callable]:
+    """Start recording ``phys``'s steps (start state and controls); returns the list they go
+    to and a function that stops the recording."""
+    recorded, real_step = [], phys.step
+    phys.step = lambda ctrl: (recorded.append((phys.state.copy(), ctrl.copy())), real_step(ctrl))[1]
+
+    def stop():
+        phys.step = real_step
+
+    return recorded, stop
+
+
+def replay_raw(phys, recorded: list) -> float:
+    """Seconds that raw ``mujoco.rollout`` takes for the recorded steps: the same models,
+    start states and controls, without IK, observations, rewards or TorchRL."""
+    t = time.perf_counter()
+    for state, ctrl in recorded:
+        phys._pool.rollout(phys.models, phys.datas, state, ctrl, control_spec=CTRL, skip_checks=True,
+                           nstep=ctrl.shape[1], state=phys._out[0], sensordata=phys._out[1])
+    return time.perf_counter() - t
+
+
 def bench_env(robots: int, batch: int, steps: int, repeats: int, nthread: int | None) -> dict:
     env = PnPEnv(num_worlds=batch, num_robots=robots, seed=0, nthread=nthread)
     td0 = env.reset()
@@ -46,22 +68,16 @@ def bench_env(robots: int, batch: int, steps: int, repeats: int, nthread: int | 
     env.step(td0.clone().set(("agents", "action"), acts[0]))
     start = env.get_state()
     phys = env.backend.physics
-    recorded = []
-    real_step = phys.step
-    phys.step = lambda ctrl: (recorded.append((phys.state.copy(), ctrl.copy())), real_step(ctrl))[1]
+    recorded, stop = record_physics(phys)
     _run_env(env, td0, acts)
-    phys.step = real_step
+    stop()
     env_t, raw_t = [], []
     for _ in range(repeats):  # interleaved, so drift in machine load hits both alike
         env.set_state(start)
         t = time.perf_counter()
         _run_env(env, td0, acts)
         env_t.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        for state, ctrl in recorded:
-            phys._pool.rollout(phys.models, phys.datas, state, ctrl, control_spec=CTRL, skip_checks=True,
-                               nstep=ctrl.shape[1], state=phys._out[0], sensordata=phys._out[1])
-        raw_t.append(time.perf_counter() - t)
+        raw_t.append(replay_raw(phys, recorded))
     env.close()
     te, tr = statistics.median(env_t) / steps, statistics.median(raw_t) / steps
     return {

@@ -8,6 +8,9 @@ Arguments are those of recipes/train.py (hydra overrides) plus ``iterations`` (t
 one untimed warm-up iteration), ``out`` and ``threads``: torch's thread counts for collection
 and update, as pairs, e.g. ``threads=1/1,1/2,2/2``; each pair is profiled in turn in this
 process and reported with its ratio to the first. MuJoCo's pool runs on ``env.nthread``.
+On MuJoCo the physics of each timed iteration is replayed through raw ``mujoco.rollout``
+(same models, states and controls) right after it: ``ratio_to_raw_physics`` is raw seconds
+over iteration seconds (1.0: training costs what its physics costs, and nothing more).
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensordict.nn import InteractionType, set_interaction_type
 
+from pnp.analysis.benchmark_env import record_physics, replay_raw
 from pnp.training.choices import RECIPES_CONFIG
 from pnp.training.config import register
 from pnp.training.ppo import ppo_update
@@ -33,9 +37,13 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
     carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
+    phys = env.base_env.backend.physics if cfg.env.backend == "mujoco" else None
+    raw_s = 0.0
     for it in range(iterations + 1):
         t = {k: 0.0 for k in times}
         out = []
+        if phys is not None:
+            recorded, stop = record_physics(phys)
         torch.set_num_threads(collect_threads)
         with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
             for _ in range(steps):
@@ -50,15 +58,20 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
         t0 = time.perf_counter()
         ppo_update(torch.stack(out, -1), loss, optim, cfg)
         t["ppo_update_s"] = time.perf_counter() - t0
+        if phys is not None:
+            stop()
+            if it:  # the same physics again, raw, right after the iteration that did it
+                raw_s += replay_raw(phys, recorded) / iterations
         if it:  # the first iteration warms up allocations and thread pools
             times = {k: times[k] + t[k] / iterations for k in times}
     env.close()
     total = sum(times.values())
+    raw = {} if phys is None else {"raw_physics_s": raw_s, "ratio_to_raw_physics": raw_s / total}
     return {"collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
             "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
             "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
             "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
-            "frames_per_s": steps * env.base_env.num_worlds / total}
+            "frames_per_s": steps * env.base_env.num_worlds / total, **raw}
 
 
 def main(argv: list[str]) -> dict:
@@ -79,7 +92,9 @@ def main(argv: list[str]) -> dict:
         row["time_ratio_to_first"] = row["seconds_per_iteration"] / rows[0]["seconds_per_iteration"]
         print(f"torch threads collect {row['collect_threads']} update {row['update_threads']}: "
               f"{row['seconds_per_iteration']:.2f} s per iteration (x{row['time_ratio_to_first']:.2f}), "
-              f"env {row['env_step_s']:.2f} s, update {row['ppo_update_s']:.2f} s")
+              f"env {row['env_step_s']:.2f} s, update {row['ppo_update_s']:.2f} s"
+              + (f", raw physics {row['raw_physics_s']:.2f} s (ratio {row['ratio_to_raw_physics']:.2f})"
+                 if "raw_physics_s" in row else ""))
     result = {**rows[0], "runs": rows[1:], **provenance()}
     out = Path(opts.get("out", "runs/profile_iteration.json"))
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -102,6 +102,14 @@ def test_profile_iteration_compares_thread_splits(tmp_path):
         profile_iteration.main(["backend=kinematic", "threads=1-2"])
 
 
+def test_profile_iteration_times_the_same_physics_raw_on_mujoco(tmp_path):
+    out = profile_iteration.main(["backend=mujoco", "env.num_worlds=4", "collect.frames_per_batch=16",
+                                  "collect.minibatch_size=8", "model.actor_cells=[16]", "model.critic_cells=[16]",
+                                  "iterations=1", f"out={tmp_path / 'p.json'}"])
+    assert 0 < out["raw_physics_s"] < out["env_step_s"]  # the env's step holds that physics and more
+    assert out["ratio_to_raw_physics"] == out["raw_physics_s"] / out["seconds_per_iteration"]
+
+
 @pytest.mark.parametrize("method", ["erskine", "bendikas"])
 def test_profile_iteration_runs_the_per_stage_baselines(tmp_path, method):
     # Their rewards and loss are the trainer's (per-stage reward columns, Erskine's critics).

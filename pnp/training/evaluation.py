@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from pnp.task import EPISODE_S, HL_DT
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.collect import seconds
-from pnp.training.pipeline import load_state
+from pnp.training.pipeline import load_launches, load_state
 from pnp.training.paired import comparison_md, paired_comparison, trial_table
 from pnp.training.protocol import resolve_seed
 from pnp.studies.recovery import CLEARANCE_M, DELAY_S, DISTANCE_M, BoxDisplacement, recovery_summary
@@ -60,6 +60,20 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
                          f"(finished: {names}; a pipeline folder is needed)")
     phases = phases[: names.index(cfg.phase) + 1]
     return phases, Path(phases[-1]["checkpoint"])
+
+
+def pipeline_costs(folder: Path, phases: list[dict]) -> dict:
+    """What a pipeline's training cost (wall time, frames, MuJoCo's frames) and how it was
+    launched: from random weights, from an empty folder, on which commits."""
+    cfgs = [load_checkpoint(Path(p["checkpoint"]))["cfg"] for p in phases]
+    launches = load_launches(folder)
+    return {"from_scratch": cfgs[0].get("warm_start") is None, "phases": phases,
+            "train_wall_s": sum(p["wall_s"] for p in phases), "env_frames": sum(p["frames"] for p in phases),
+            "mujoco_frames": sum(p["frames"] for p, c in zip(phases, cfgs) if c["env"]["backend"] == "mujoco"),
+            "pipeline_launches": launches,
+            # Not recorded by folders older than the launch records: unknown, not assumed.
+            "from_empty_folder": (launches[0]["folder_was_empty"] and not launches[0]["branch_from"]) if launches else None,
+            "launch_commits": sorted({entry["commit"] for entry in launches})}
 
 
 def observation_noise(cfg: DictConfig, env) -> dict | None:
@@ -141,9 +155,7 @@ def evaluate(cfg: DictConfig) -> dict:
     if selection is not None:
         result["selection"] = str(selection)
     if phases:  # a pipeline folder: every phase's cost
-        first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
-        result.update(from_scratch=first.get("warm_start") is None, phases=phases,
-                      train_wall_s=sum(p["wall_s"] for p in phases), env_frames=sum(p["frames"] for p in phases))
+        result.update(pipeline_costs(Path(str(cfg.checkpoint)), phases))
     out = Path(cfg.out) if cfg.out else ckpt_path.parent / f"eval_{env.backend}.json"
     method = cfg.method or f"Ours ({result['schedule']} curriculum, {result['backend']})" + (
         f", sampled {'+'.join(sample)}" if sample else "")

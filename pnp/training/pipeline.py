@@ -29,6 +29,7 @@ from pnp.training.collect import windowed_mean
 from pnp.training.config import changed_settings, migrate
 from pnp.training.plots import plot_pipeline
 from pnp.training.progress import PhasePlan, PipelineProgress
+from pnp.training.provenance import launch_record
 from pnp.training.trainer import RESUMABLE, Trainer
 
 STATE = "pipeline.json"
@@ -197,6 +198,19 @@ def load_state(out_dir: Path) -> list[dict]:
     return json.loads(path.read_text())["phases"] if path.is_file() else []
 
 
+def load_launches(out_dir: Path) -> list[dict]:
+    """Every launch of the pipeline in ``out_dir`` (command, commit, machine, date, whether
+    the folder was empty and what it branched from); older folders did not record them."""
+    path = out_dir / STATE
+    return json.loads(path.read_text()).get("launches", []) if path.is_file() else []
+
+
+def _save_state(out_dir: Path, done: list[dict], launch: dict | None = None) -> None:
+    """``pipeline.json``: the finished phases, and each launch (``launch`` is appended)."""
+    launches = load_launches(out_dir) + ([launch] if launch else [])
+    (out_dir / STATE).write_text(json.dumps({"phases": done, "launches": launches}, indent=1) + "\n")
+
+
 def shared_phases(source_dir: Path, phases: list) -> list[dict]:
     """The finished phases of the pipeline in ``source_dir`` that ``phases`` declares alike
     (same names and overrides, from the first on): a branch reuses them and their checkpoints."""
@@ -237,13 +251,14 @@ def run_pipeline(cfg: DictConfig) -> dict:
     if cfg.out_dir is None:
         raise ValueError("out_dir is not set (the hydra entry point sets it to the run folder)")
     out_dir = Path(cfg.out_dir)
+    empty = not out_dir.exists() or not any(out_dir.iterdir())
     out_dir.mkdir(parents=True, exist_ok=True)
     phases = pipeline_phases(cfg)
     names = [name for name, _ in phases]
     done = load_state(out_dir)
     if not done and cfg.branch_from:
         done = shared_phases(Path(cfg.branch_from), phases)
-        (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
+    _save_state(out_dir, done, {**launch_record(), "folder_was_empty": empty, "branch_from": cfg.branch_from})
     if [d["name"] for d in done] != names[: len(done)]:
         raise ValueError(f"{out_dir / STATE} records phases {[d['name'] for d in done]}, this pipeline is {names}: "
                          "a different pipeline; use another out_dir")
@@ -282,7 +297,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
             "wall_s": float(counters["wall_s"]), "exit": check.reason if by_rule else "budget", "checkpoint": str(ckpt_path),
         })
-        (out_dir / STATE).write_text(json.dumps({"phases": done}, indent=1) + "\n")
+        _save_state(out_dir, done)
         plot_pipeline(out_dir, done)
         progress.finish_phase(index, done[-1], _planned_frames(cfg, done))
     progress.close()

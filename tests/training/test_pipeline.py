@@ -10,7 +10,7 @@ from omegaconf.errors import ConfigKeyError
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.config import ExitRule
-from pnp.training.pipeline import ExitCheck, phase_config, phase_frames, run_pipeline, total_frames
+from pnp.training.pipeline import ExitCheck, load_launches, phase_config, phase_frames, run_pipeline, total_frames
 from tests.training._tiny import TINY, compose_cfg
 from pnp.training import evaluation as evaluate_recipe
 
@@ -33,6 +33,10 @@ def test_phases_run_back_to_back_with_warm_starts(tmp_path):
     assert (near["iterations"], near["frames"], near["exit"]) == (2, 80, "budget")
     assert (far["iterations"], far["frames"], far["exit"]) == (3, 120, "budget")
     assert json.loads((tmp_path / "run" / "pipeline.json").read_text())["phases"] == out["phases"]
+    run_pipeline(_cfg(tmp_path / "run"))  # finished: a second launch is recorded, on a folder not empty
+    launches = load_launches(tmp_path / "run")
+    assert [entry["folder_was_empty"] for entry in launches] == [True, False]
+    assert all(entry["branch_from"] is None and "commit" in entry for entry in launches)
     rows = [json.loads(line) for line in (tmp_path / "run" / "pipeline_metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4, 5] and [r["phase"] for r in rows] == [0, 0, 1, 1, 1]
     for png in ("mean_end_stage.png", "stage_shares.png", "rho.png"):
@@ -228,6 +232,8 @@ def test_evaluate_on_a_pipeline_folder_reports_every_phase(tmp_path):
         f"out={tmp_path / 'eval.json'}", "progress=false"]))
     assert result["checkpoint"].endswith("1_far/checkpoint.pt") and result["from_scratch"]
     assert result["phases"] == out["phases"] and result["env_frames"] == 200
+    assert result["mujoco_frames"] == 0  # both phases kinematic
+    assert result["from_empty_folder"] and len(result["pipeline_launches"]) == 1 and len(result["launch_commits"]) == 1
     first = evaluate_recipe.evaluate(compose_cfg("evaluate", [
         f"checkpoint={tmp_path / 'run'}", "phase=near", "trials=4", "env.num_worlds=4", "env.max_episode_steps=5",
         f"out={tmp_path / 'eval_near.json'}", "progress=false"]))

@@ -175,6 +175,25 @@ class AblationEEConfig:
     train: List[str] = MISSING
 
 
+@dataclass
+class SeedGoals:
+    mean_success: float = MISSING
+    worst_success: float = MISSING
+    max_train_wall_s: float = MISSING
+    max_mujoco_frames: int = MISSING
+
+
+@dataclass
+class SeedStudyConfig:
+    runs: List[str] = MISSING
+    eval_name: str = MISSING
+    title: str = MISSING
+    out: str = MISSING
+    dirty_reason: Optional[str] = MISSING
+    goals: SeedGoals = field(default_factory=SeedGoals)
+
+
 RECIPE_SCHEMAS = {"evaluate": EvaluateConfig, "evaluate_student": EvaluateStudentConfig,
                   "student_recovery": StudentRecoveryConfig, "select_checkpoint": SelectCheckpointConfig,
-                  "ll_quality": LLQualityConfig, "table1": Table1Config, "ablation_ee": AblationEEConfig}
+                  "ll_quality": LLQualityConfig, "table1": Table1Config, "ablation_ee": AblationEEConfig,
+                  "seed_study": SeedStudyConfig}

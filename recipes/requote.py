@@ -48,6 +48,12 @@ def label_dirty(doc: dict) -> dict:
     return doc
 
 
+def same_checkpoint(old: dict, new: dict) -> bool:
+    """Whether two evaluations are of the same checkpoint (iteration, frames, configuration)."""
+    keys = ("checkpoint_iteration", "checkpoint_frames", "config_sha")
+    return all(old.get(k) == new.get(k) for k in keys if k in old)
+
+
 def requote(name: str) -> dict:
     row = ROWS[name]
     recipe, checkpoint, experiment, extra = row["recipe"], row["checkpoint"], row["experiment"], row.get("overrides", [])
@@ -63,6 +69,11 @@ def requote(name: str) -> dict:
     # The experiment that composes to the checkpoint's configuration today (test_quoted_configs.py);
     # distill:<name> is a distill_experiment.
     new["experiment"] = experiment
+    if old and not same_checkpoint(old, new):  # another checkpoint: nothing of its file describes this one
+        new["replaced_evaluation"] = {**{k: old.get(k) for k in HEADLINE},
+                                      **{k: old.get(k) for k in ("checkpoint_iteration", "config_sha", "notes")}}
+        old = {}
+        print(f"{name}: a new checkpoint; its former file is kept under replaced_evaluation, write its notes", flush=True)
     carried = {k: v for k, v in old.items() if k not in new and k != "previous_evaluation"}
     if "previous_evaluation" not in old and old:
         carried["previous_evaluation"] = {k: old.get(k) for k in HEADLINE}

@@ -269,8 +269,9 @@ class ThreadsConfig:
     (one per core, which cost 5-7x beside one other process: issue 64). null: the cores this
     process may use. MuJoCo's pool is ``env.nthread``."""
 
-    collect: Optional[int] = 1  # the policy's forward on the batch, and the kinematic backend's physics
-    update: Optional[int] = None  # the PPO update
+    # Measured: docs/history/make_train_cost.md (beside another process, update=1).
+    collect: Optional[int] = 1  # the policy's forward (the env steps on one thread itself)
+    update: Optional[int] = None  # the PPO update: ~1.5 s on 2 cores alone against ~2.5 s on one
 
 
 @dataclass

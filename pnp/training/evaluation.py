@@ -65,11 +65,14 @@ def pipeline_phases(cfg: DictConfig) -> tuple[list[dict], Path | None]:
 def pipeline_costs(folder: Path, phases: list[dict]) -> dict:
     """What a pipeline's training cost (wall time, frames, MuJoCo's frames) and how it was
     launched: from random weights, from an empty folder, on which commits."""
-    cfgs = [load_checkpoint(Path(p["checkpoint"]))["cfg"] for p in phases]
+    def backend(phase: dict) -> str:  # phases recorded before 2026-12-03 lack it: their checkpoint has it
+        return phase.get("backend") or load_checkpoint(Path(phase["checkpoint"]))["cfg"]["env"]["backend"]
+
     launches = load_launches(folder)
-    return {"from_scratch": cfgs[0].get("warm_start") is None, "phases": phases,
+    first = load_checkpoint(Path(phases[0]["checkpoint"]))["cfg"]
+    return {"from_scratch": first.get("warm_start") is None, "phases": phases,
             "train_wall_s": sum(p["wall_s"] for p in phases), "env_frames": sum(p["frames"] for p in phases),
-            "mujoco_frames": sum(p["frames"] for p, c in zip(phases, cfgs) if c["env"]["backend"] == "mujoco"),
+            "mujoco_frames": sum(p["frames"] for p in phases if backend(p) == "mujoco"),
             "pipeline_launches": launches,
             # Not recorded by folders older than the launch records: unknown, not assumed.
             "from_empty_folder": (launches[0]["folder_was_empty"] and not launches[0]["branch_from"]) if launches else None,

@@ -296,6 +296,7 @@ def run_pipeline(cfg: DictConfig) -> dict:
             "name": names[index], "overrides": OmegaConf.to_container(phases[index][1].overrides),
             "iterations": int(counters["iteration"]), "frames": int(counters["frames"]),
             "wall_s": float(counters["wall_s"]), "exit": check.reason if by_rule else "budget", "checkpoint": str(ckpt_path),
+            "backend": str(pcfg.env.backend),
         })
         _save_state(out_dir, done)
         plot_pipeline(out_dir, done)

@@ -32,6 +32,7 @@ def test_phases_run_back_to_back_with_warm_starts(tmp_path):
     near, far = out["phases"]
     assert (near["iterations"], near["frames"], near["exit"]) == (2, 80, "budget")
     assert (far["iterations"], far["frames"], far["exit"]) == (3, 120, "budget")
+    assert near["backend"] == far["backend"] == "kinematic"  # evaluations count MuJoCo's frames by it
     assert json.loads((tmp_path / "run" / "pipeline.json").read_text())["phases"] == out["phases"]
     run_pipeline(_cfg(tmp_path / "run"))  # finished: a second launch is recorded, on a folder not empty
     launches = load_launches(tmp_path / "run")

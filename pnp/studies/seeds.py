@@ -33,7 +33,7 @@ def _load(run: Path, eval_name: str) -> dict:
     return {**result, "eval_file": str(path)}
 
 
-def goal_checks(seeds: dict, summary: dict, goals: dict) -> dict:
+def goal_checks(seeds: dict, summary: dict, commits: list[str], goals: dict) -> dict:
     """Each goal with the measured value and whether it is met (``None``: not measured)."""
     def check(value, limit, at_least: bool) -> dict:
         met = None if value is None else (value >= limit if at_least else value <= limit)
@@ -47,7 +47,7 @@ def goal_checks(seeds: dict, summary: dict, goals: dict) -> dict:
         "max_train_wall_s": check(worst_wall, goals["max_train_wall_s"], False),
         "max_mujoco_frames": check(None if None in frames else max(frames), goals["max_mujoco_frames"], False),
         "from_empty_folders": {"met": all(s["from_empty_folder"] is True for s in seeds.values())},
-        "one_commit": {"met": len({c for s in seeds.values() for c in s["launch_commits"]}) == 1},
+        "one_commit": {"met": len(commits) == 1},
     }
 
 
@@ -78,7 +78,7 @@ def seed_study(runs: list[Path], eval_name: str, goals: dict, command: str) -> d
         "seeds": seeds, "num_seeds": len(seeds), **summary, "trials_per_seed": trials.pop(),
         "reporting_seed": REPORTING_SEED, "paired": True,
         "commit": commits[0] if len(commits) == 1 else None, "launch_commits": commits,
-        "goals": goal_checks(seeds, summary, goals),
+        "goals": goal_checks(seeds, summary, commits, goals),
         # "commit" is the seeds' training commit; this gathering's own provenance is apart.
         "gathered": provenance(command=command),
     }

@@ -1,0 +1,241 @@
+"""The simulated world of a deployment: our env plays the robots' hardware (each robot's
+sensors and low level, ``Robot`` service) and the mocap system, on a 10 Hz clock of its own.
+Each tick it publishes every robot's state, sends the box pose and new episodes to the
+coordinator, waits for the robots' commands until the tick's deadline, and steps the
+physics with them; a robot whose newest command is too old holds (watchdog).
+
+    python -m pnp.deploy.world checkpoint=results/eval_student_dual_checkpoint.pt coordinator=127.0.0.1:50051
+
+The trials are the evaluation protocol's paired trials (``seed``), run W worlds at a time by
+``pnp.training.rollout.run_trials``, whose actor here is the robots over the wire.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from pnp.deploy.faults import DelayLine, MocapDropouts
+from pnp.deploy.messages import box_pose, check_header, episode_info, read_command, robot_state
+from pnp.deploy.proto import deploy_pb2 as pb
+from pnp.deploy.proto import deploy_pb2_grpc as pb_grpc
+from pnp.deploy.server import WorldClock, channel, refusing, serve
+from pnp.deploy.config import deploy_config
+from pnp.distill.config import distill_config
+from pnp.distill.student import make_student_env
+from pnp.task import HL_DT
+from pnp.training.checkpoint import load_checkpoint, seed_everything
+from pnp.training.keys import ACTION
+from pnp.training.protocol import resolve_seed
+from pnp.training.rollout import evaluation_env_config, run_trials, summarise
+
+log = logging.getLogger("pnp.deploy.world")
+HOLD = slice(0, 3)  # base velocity commands, zeroed when the low level holds
+
+
+class Robots(pb_grpc.RobotServicer):
+    """Each robot's hardware interface: ``Sense`` returns its state of the current tick,
+    ``Act`` takes a command into the (faulty) bus to the low level."""
+
+    def __init__(self, cfg: DictConfig, num_robots: int, worlds: int, clock: WorldClock, seed: int):
+        self.num_robots, self.worlds, self.clock = num_robots, worlds, clock
+        self.bus = {r: DelayLine(cfg.faults.command, clock, seed + 200 + r) for r in range(num_robots)}
+        self.states: dict[int, pb.RobotState] = {}
+        self.sensed = set()
+        self.refused: dict[str, int] = {}
+        self.published_at: dict[int, float] = {}  # tick -> real time its states were published
+        self.arrivals: dict[int, list[float]] = {r: [] for r in range(num_robots)}  # real s from state to command
+        self._lock = threading.Lock()
+
+    @refusing
+    def Sense(self, request, context):
+        check_header(request.header, self.num_robots, "Sense")
+        rid = request.header.robot_id
+        with self._lock:
+            self.sensed.add(rid)
+            state = self.states.get(rid)
+        return state if state is not None else pb.RobotState()
+
+    @refusing
+    def Act(self, request, context):
+        check_header(request.header, self.num_robots, "Act")
+        action = read_command(request, self.worlds)
+        rid, tick = request.header.robot_id, int(request.tick)
+        with self._lock:
+            sent = self.published_at.get(tick)
+        if sent is not None:
+            self.arrivals[rid].append(time.monotonic() - sent)
+        self.bus[rid].push((tick, action))
+        return pb.Ack(ok=True)
+
+
+class RemoteActor:
+    """``run_trials``' actor: one call is one control tick of the world (publish, wait for
+    the robots until the deadline, write their commands as the action)."""
+
+    def __init__(self, cfg: DictConfig, env, robots: Robots, coordinator, seed: int):
+        self.cfg, self.env, self.base, self.robots, self.coordinator = cfg, env, env.base_env, robots, coordinator
+        self.worlds, self.num_robots = robots.worlds, robots.num_robots
+        self.clock, self.tick_real = robots.clock, robots.clock.real(HL_DT)
+        self.mocap = MocapDropouts(cfg.faults.mocap, self.worlds, HL_DT, seed + 300)
+        self.tick, self.seq, self.next_at = 0, 0, None
+        self.commands = {r: (-1, None) for r in range(self.num_robots)}  # newest (tick, action) delivered
+        self.episodes = None
+        self.counts = {"ticks": 0, "overruns": 0, "watchdog": [0] * self.num_robots,
+                       "stale_commands": [0] * self.num_robots}
+
+    def _publish(self) -> None:
+        s, base = self.base.physical_state(), self.base
+        steps, episodes = base._steps.numpy().copy(), base.trial.numpy().copy()
+        stamp = self.clock()
+        self.seq += 1
+        states = {}
+        for r in range(self.num_robots):
+            arrays = {"base": s.base[:, r], "base_z": s.base_z[:, r], "base_vel": s.base_vel[:, r], "arm_q": s.arm_q[:, r],
+                      "arm_qd": s.arm_qd[:, r], "finger_q": s.finger_q[:, r], "touch": s.touch[:, r].float(),
+                      "ee_pos": s.ee_pos[:, r], "ee_rot": s.ee_rot[:, r].reshape(-1, 9),
+                      "last_action": base._last_action[:, r]}
+            states[r] = robot_state(r, {k: v.numpy() for k, v in arrays.items()}, steps, episodes, self.tick, stamp,
+                                    self.seq)
+        with self.robots._lock:
+            self.robots.states = states
+            self.robots.published_at[self.tick] = time.monotonic()
+            self.robots.published_at.pop(self.tick - 50, None)
+        if self.episodes is None or not np.array_equal(self.episodes, episodes):
+            self.episodes = episodes
+            claim = base._claim.numpy() if base.handle_claim else np.full((self.worlds, self.num_robots), -1)
+            self.coordinator.PublishEpisodes(episode_info(
+                episodes, s.goal.numpy(), s.box_size.numpy(), claim, self.num_robots, stamp, self.seq))
+        visible = self.mocap.visible() | (steps == 0)  # an episode starts with the box seen
+        box = {"pos": s.box_pos.numpy(), "rot": s.box_rot.reshape(-1, 9).numpy(), "vel": s.box_vel.numpy()}
+        self.coordinator.PublishMocap(box_pose(box, visible, episodes, self.tick, stamp, self.seq))
+
+    def _collect(self) -> torch.Tensor:
+        """[W, R, 8]: each robot's newest command if it is fresh enough, else the hold."""
+        last = self.base._last_action.clone()
+        action = last.clone()
+        for r in range(self.num_robots):
+            for tick, a in self.robots.bus[r].pop_due():
+                if tick > self.commands[r][0]:
+                    self.commands[r] = (tick, a)
+            tick, a = self.commands[r]
+            age_s = (self.tick - tick) * HL_DT
+            if a is not None and age_s <= self.cfg.command_timeout_s + 1e-9:
+                action[:, r] = torch.as_tensor(a)
+                self.counts["stale_commands"][r] += int(tick != self.tick)
+            else:  # the low level holds: no base motion, the last EE target and gripper kept
+                action[:, r, HOLD] = 0.0
+                self.counts["watchdog"][r] += 1
+                if self.counts["watchdog"][r] in (1, 10, 100) or self.counts["watchdog"][r] % 1000 == 0:
+                    log.warning("watchdog: robot %d has no command younger than %.2f s at tick %d (%d holds so far)",
+                                r, self.cfg.command_timeout_s, self.tick, self.counts["watchdog"][r])
+        return action
+
+    def __call__(self, td):
+        now = time.monotonic()
+        if self.next_at is not None:
+            if now > self.next_at + 0.5 * self.tick_real:
+                self.counts["overruns"] += 1  # the physics took more than its share of the tick
+            time.sleep(max(0.0, self.next_at - now))
+        start = time.monotonic()
+        self._publish()
+        time.sleep(max(0.0, start + self.cfg.deadline_share * self.tick_real - time.monotonic()))
+        td.set(ACTION, self._collect())
+        self.next_at = start + self.tick_real
+        self.tick += 1
+        self.counts["ticks"] += 1
+        return td
+
+
+def wait_for_robots(robots: Robots, timeout_s: float = 120.0) -> None:
+    """Blocks until every robot has sensed once (its client is up), publishing nothing."""
+    t0 = time.monotonic()
+    while len(robots.sensed) < robots.num_robots:
+        if time.monotonic() - t0 > timeout_s:
+            missing = sorted(set(range(robots.num_robots)) - robots.sensed)
+            raise TimeoutError(f"robots {missing} did not connect within {timeout_s:.0f} s")
+        time.sleep(0.05)
+
+
+def start_robots(cfg: DictConfig, num_robots: int, worlds: int, clock: WorldClock, seed: int):
+    """The robots' hardware server: (server, port, servicer)."""
+    servicer = Robots(cfg, num_robots, worlds, clock, seed)
+    server, port = serve(pb_grpc.add_RobotServicer_to_server, servicer, cfg.host, cfg.world_port, cfg.max_message_bytes)
+    log.info("robots' hardware on %s:%d", cfg.host, port)
+    return server, port, servicer
+
+
+def build_world_env(cfg: DictConfig):
+    """The student's evaluation env without its observation transforms (the world is the
+    physics; observations are formed by each robot): (student config, env, seed)."""
+    ckpt = load_checkpoint(cfg.checkpoint)
+    if "distill" not in ckpt["cfg"]:
+        raise ValueError(f"checkpoint={cfg.checkpoint} is a teacher's: a deployment runs a student")
+    scfg, seed = distill_config(ckpt["cfg"]), resolve_seed(cfg.seed)
+    if cfg.robots is not None and int(cfg.robots) != int(scfg.env.num_robots):
+        raise ValueError(f"robots={cfg.robots}, but {cfg.checkpoint} is a {scfg.env.num_robots}-robot student")
+    evaluation_env_config(scfg.env, min(int(cfg.worlds), int(cfg.trials)), backend=cfg.backend, low_level=cfg.low_level)
+    seed_everything(seed)
+    return scfg, make_student_env(scfg, seed, "clean"), seed
+
+
+def latency(arrivals: dict[int, list[float]]) -> dict:
+    """Per robot, real milliseconds from a tick's states to the command answering them."""
+    out = {}
+    for r, values in arrivals.items():
+        ms = 1e3 * np.asarray(values)
+        out[f"robot_{r}"] = ({"commands": len(ms), "p50_ms": float(np.percentile(ms, 50)),
+                              "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())} if len(ms) else None)
+    return out
+
+
+def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None) -> dict:
+    """The trials, played for the robots that connect to this world's server; ``on_ready(port)``
+    once it listens. Returns the trial records, their summary and the world's counters."""
+    scfg, env, seed = build_world_env(cfg)
+    num_robots, worlds = int(scfg.env.num_robots), int(scfg.env.num_worlds)
+    clock = WorldClock(cfg.time_scale)
+    server, port, robots = start_robots(cfg, num_robots, worlds, clock, seed)
+    coordinator = pb_grpc.CoordinatorStub(channel(coordinator_address, cfg.max_message_bytes))
+    try:
+        if on_ready is not None:
+            on_ready(port)
+        wait_for_robots(robots)
+        actor = RemoteActor(cfg, env, robots, coordinator, seed)
+        t0 = time.monotonic()
+        records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
+        wall = time.monotonic() - t0
+        done = actor.episodes if actor.episodes is not None else np.zeros(worlds, np.int64)
+        coordinator.PublishEpisodes(episode_info(done, np.zeros((worlds, 2)), np.ones((worlds, 3)),
+                                                 np.full((worlds, num_robots), -1), num_robots, clock(), actor.seq + 1,
+                                                 finished=True))
+    finally:
+        env.close()
+        server.stop(grace=1.0)
+    return {"records": records, "summary": summarise(records), "seed": seed, "num_robots": num_robots,
+            "worlds": worlds, "world": actor.counts, "mocap_dropouts_started": actor.mocap.started,
+            "command_bus": {f"robot_{r}": line.stats() for r, line in robots.bus.items()},
+            "latency": latency(robots.arrivals), "refused": robots.refused, "wall_s": wall,
+            "student_config": OmegaConf.to_container(OmegaConf.masked_copy(scfg, ["noise", "student"]))}
+
+
+def main(argv=None) -> None:
+    cfg = deploy_config(list(sys.argv[1:] if argv is None else argv))
+    if cfg.coordinator_address is None:
+        raise SystemExit("the world alone needs coordinator_address=host:port")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    out = run_world(cfg, cfg.coordinator_address, lambda port: print(f"world listening on {cfg.host}:{port}", flush=True))
+    print({k: out["summary"][k] for k in ("trials", "success_rate", "completion_time_mean_s")}, flush=True)
+    if cfg.out:
+        Path(cfg.out).write_text(json.dumps(out, default=str))
+
+
+if __name__ == "__main__":
+    main()

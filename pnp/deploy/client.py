@@ -99,18 +99,26 @@ class RemoteRobotEnv(EnvBase):
         return pb.Poll(header=header(self.robot_id, 0.0, self.seq))
 
     def _wait_for_new_state(self) -> pb.RobotState:
-        """The timer's next tick that shows a state newer than the last one acted on."""
+        """The timer's next tick that shows a state newer than the last one acted on.
+
+        The timer locks its phase to the world's: when it fires before the new state is
+        out, it looks again every 1/20 of a tick and restarts its period from the moment
+        the state appears (unsynchronised, a command came ~half a tick late on average)."""
+        now = time.monotonic()
+        if self.next_at is not None and now < self.next_at:
+            time.sleep(self.next_at - now)
+        polls = 0
         while True:
-            now = time.monotonic()
-            self.next_at = now if self.next_at is None or now - self.next_at > self.tick_s else self.next_at
-            time.sleep(max(0.0, self.next_at - now))
-            self.next_at += self.tick_s
             state = self.world.Sense(self._poll())
             if state.worlds and state.tick != self.tick:
+                self.next_at = time.monotonic() + self.tick_s
                 self.counts["missed_world_ticks"] += max(0, int(state.tick) - self.tick - 1) if self.tick >= 0 else 0
                 return state
-            self.counts["skipped_timer_ticks"] += 1
-            self._check_finished()
+            polls += 1
+            if polls % 20 == 0:  # a whole tick without a new state
+                self.counts["skipped_timer_ticks"] += 1
+                self._check_finished()
+            time.sleep(self.tick_s / 20)
 
     def _check_finished(self) -> None:
         relay = self.coordinator.Fetch(self._poll())

@@ -61,7 +61,7 @@ class DelayLine:
 
 class MocapDropouts:
     """Per world, whether the markers are lost this tick: a dropout starts with probability
-    ``rate_hz * dt`` on a tick where they are seen and lasts ``max(1, round(U[min_s, max_s] / dt))``
+    ``rate_hz * dt`` after a tick where they were seen and lasts ``max(1, round(U[min_s, max_s] / dt))``
     ticks (``faults``: a ``MocapFaults``). A world whose episode restarts keeps its dropout:
     the markers do not know about episodes."""
 
@@ -74,9 +74,10 @@ class MocapDropouts:
     def visible(self) -> np.ndarray:
         """This tick's visibility [W] (call once per tick)."""
         f = self.faults
+        was_seen = self.left == 0  # a dropout starts after a tick where the markers were seen
         self.left = np.maximum(self.left - 1, 0)
         if f.rate_hz > 0:
-            start = (self.left == 0) & (self.rng.random(self.left.shape) < f.rate_hz * self.dt)
+            start = was_seen & (self.rng.random(self.left.shape) < f.rate_hz * self.dt)
             n = int(start.sum())
             if n:
                 self.started += n

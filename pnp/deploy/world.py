@@ -40,6 +40,19 @@ log = logging.getLogger("pnp.deploy.world")
 HOLD = slice(0, 3)  # base velocity commands, zeroed when the low level holds
 
 
+def robot_arrays(s, last_action: torch.Tensor, r: int) -> dict[str, np.ndarray]:
+    """Robot ``r``'s sensors in the task state ``s`` (a ``PnPState``), as its message carries them."""
+    arrays = {"base": s.base[:, r], "base_z": s.base_z[:, r], "base_vel": s.base_vel[:, r], "arm_q": s.arm_q[:, r],
+              "arm_qd": s.arm_qd[:, r], "finger_q": s.finger_q[:, r], "touch": s.touch[:, r].float(),
+              "ee_pos": s.ee_pos[:, r], "ee_rot": s.ee_rot[:, r].reshape(-1, 9), "last_action": last_action[:, r]}
+    return {k: v.numpy() for k, v in arrays.items()}
+
+
+def box_arrays(s) -> dict[str, np.ndarray]:
+    """The box as the mocap reports it (pose and velocity, world frame)."""
+    return {"pos": s.box_pos.numpy(), "rot": s.box_rot.reshape(-1, 9).numpy(), "vel": s.box_vel.numpy()}
+
+
 class Robots(pb_grpc.RobotServicer):
     """Each robot's hardware interface: ``Sense`` returns its state of the current tick,
     ``Act`` takes a command into the (faulty) bus to the low level."""
@@ -96,14 +109,8 @@ class RemoteActor:
         steps, episodes = base._steps.numpy().copy(), base.trial.numpy().copy()
         stamp = self.clock()
         self.seq += 1
-        states = {}
-        for r in range(self.num_robots):
-            arrays = {"base": s.base[:, r], "base_z": s.base_z[:, r], "base_vel": s.base_vel[:, r], "arm_q": s.arm_q[:, r],
-                      "arm_qd": s.arm_qd[:, r], "finger_q": s.finger_q[:, r], "touch": s.touch[:, r].float(),
-                      "ee_pos": s.ee_pos[:, r], "ee_rot": s.ee_rot[:, r].reshape(-1, 9),
-                      "last_action": base._last_action[:, r]}
-            states[r] = robot_state(r, {k: v.numpy() for k, v in arrays.items()}, steps, episodes, self.tick, stamp,
-                                    self.seq)
+        states = {r: robot_state(r, robot_arrays(s, base._last_action, r), steps, episodes, self.tick, stamp, self.seq)
+                  for r in range(self.num_robots)}
         with self.robots._lock:
             self.robots.states = states
             self.robots.published_at[self.tick] = time.monotonic()
@@ -114,8 +121,7 @@ class RemoteActor:
             self.coordinator.PublishEpisodes(episode_info(
                 episodes, s.goal.numpy(), s.box_size.numpy(), claim, self.num_robots, stamp, self.seq))
         visible = self.mocap.visible() | (steps == 0)  # an episode starts with the box seen
-        box = {"pos": s.box_pos.numpy(), "rot": s.box_rot.reshape(-1, 9).numpy(), "vel": s.box_vel.numpy()}
-        self.coordinator.PublishMocap(box_pose(box, visible, episodes, self.tick, stamp, self.seq))
+        self.coordinator.PublishMocap(box_pose(box_arrays(s), visible, episodes, self.tick, stamp, self.seq))
 
     def _collect(self) -> torch.Tensor:
         """[W, R, 8]: each robot's newest command if it is fresh enough, else the hold."""

@@ -1,0 +1,35 @@
+"""Every process on loopback, fault-free: the deployed student succeeds on the trials the
+in-process evaluation of the same student succeeds on (within the paired interval)."""
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("grpc")
+pytest.importorskip("onnxruntime")
+
+from pnp.deploy.config import deploy_config  # noqa: E402
+from pnp.deploy.run import run  # noqa: E402
+from pnp.deploy.student_io import load_student  # noqa: E402
+from pnp.training.paired import paired_comparison  # noqa: E402
+from pnp.training.protocol import resolve_seed  # noqa: E402
+from pnp.training.rollout import run_trials  # noqa: E402
+from tests.training._tiny import ROOT  # noqa: E402
+
+TRIALS = 4
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_fault_free_runtime_matches_the_in_process_student(tmp_path):
+    checkpoint = str(ROOT / "results" / "eval_student_single_checkpoint.pt")
+    cfg = deploy_config([f"checkpoint={checkpoint}", f"trials={TRIALS}", f"worlds={TRIALS}", "time_scale=2",
+                         "progress=false"])
+    deployed = run(cfg, tmp_path)
+    student = load_student(checkpoint, num_worlds=TRIALS, seed=resolve_seed(cfg.seed))
+    in_process = run_trials(student.env, student.actor, TRIALS)
+    student.env.close()
+    comparison = paired_comparison(deployed["records"], in_process)
+    low, high = comparison["success_diff_interval"]
+    assert low <= 0.0 <= high, comparison
+    assert deployed["world"]["watchdog"][0] <= 2  # at most the first tick(s) before the first command
+    assert deployed["clients"]["robot_0"]["steps"] > 0 and deployed["coordinator"]["refused"] == {}

@@ -46,14 +46,19 @@ def _address(proc: subprocess.Popen, what: str, timeout_s: float = 120.0) -> str
     return line.strip().rsplit(" ", 1)[-1]
 
 
-def _restart(cfg, clients: dict, client_args, logs: Path, started: float) -> list[dict]:
-    """The client-restart fault: kill robot r's client at world time at_s, start it again down_s later."""
+def _restart(cfg, clients: dict, client_args, logs: Path, world: subprocess.Popen) -> list[dict]:
+    """The client-restart fault: kill robot r's client at world time at_s (from the world's
+    first tick), start it again down_s later."""
     fault, events = cfg.faults.restart, []
     if fault.robot < 0:
         return events
 
     def run():
-        time.sleep(max(0.0, started + fault.at_s / cfg.time_scale - time.monotonic()))
+        while "ticking" not in world.stdout.readline():
+            if world.poll() is not None:
+                return
+        started = time.monotonic()
+        time.sleep(fault.at_s / cfg.time_scale)
         clients[fault.robot].kill()
         events.append({"event": "killed", "robot": int(fault.robot), "real_s": round(time.monotonic() - started, 3)})
         time.sleep(fault.down_s / cfg.time_scale)
@@ -93,7 +98,7 @@ def run(cfg, workdir: Path) -> dict:
             return [*common, f"robot_id={r}", f"coordinator_address={coordinator}", f"world_address={world}",
                     f"onnx={onnx}", f"out={workdir / f'client{r}.json'}"]
         clients = {r: _start("client", client_args(r), workdir / f"client{r}.log") for r in range(robots)}
-        events = _restart(cfg, clients, client_args, workdir, time.monotonic())
+        events = _restart(cfg, clients, client_args, workdir, procs["world"])
         if procs["world"].wait() != 0:
             raise RuntimeError(f"the world failed (exit {procs['world'].returncode}): {workdir / 'world.log'}")
         for r, proc in clients.items():

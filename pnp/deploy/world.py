@@ -202,9 +202,10 @@ def latency(arrivals: dict[int, list[float]]) -> dict:
     return out
 
 
-def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None) -> dict:
+def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None, on_start=None) -> dict:
     """The trials, played for the robots that connect to this world's server; ``on_ready(port)``
-    once it listens. Returns the trial records, their summary and the world's counters."""
+    once it listens, ``on_start()`` when every robot is up and the clock starts. Returns the
+    trial records, their summary and the world's counters."""
     scfg, env, seed = build_world_env(cfg)
     num_robots, worlds = int(scfg.env.num_robots), int(scfg.env.num_worlds)
     clock = WorldClock(cfg.time_scale)
@@ -214,6 +215,8 @@ def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None) -> dict:
         if on_ready is not None:
             on_ready(port)
         wait_for_robots(robots)
+        if on_start is not None:
+            on_start()
         actor = RemoteActor(cfg, env, robots, coordinator, seed)
         t0 = time.monotonic()
         records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
@@ -237,7 +240,8 @@ def main(argv=None) -> None:
     if cfg.coordinator_address is None:
         raise SystemExit("the world alone needs coordinator_address=host:port")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    out = run_world(cfg, cfg.coordinator_address, lambda port: print(f"world listening on {cfg.host}:{port}", flush=True))
+    out = run_world(cfg, cfg.coordinator_address, lambda port: print(f"world listening on {cfg.host}:{port}", flush=True),
+                    lambda: print("world ticking", flush=True))
     print({k: out["summary"][k] for k in ("trials", "success_rate", "completion_time_mean_s")}, flush=True)
     if cfg.out:
         Path(cfg.out).write_text(json.dumps(out, default=str))

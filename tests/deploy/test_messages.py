@@ -13,7 +13,7 @@ from pnp.deploy.faults import DelayLine, MocapDropouts
 from pnp.deploy.messages import (BadMessage, box_pose, episode_info, read_box_pose, read_episode_info,
                                  read_robot_state, robot_state)
 from pnp.deploy.world import box_arrays, build_world_env, robot_arrays
-from pnp.training.keys import ACTION, OBS
+from pnp.training.keys import OBS
 from tests.training._tiny import ROOT
 
 pytest.importorskip("grpc")

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import copy
+import logging
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,9 +94,16 @@ def export_onnx(student: DeployedStudent, path: str | Path) -> Path:
     # A batch of 2: torch.export specialises a size-1 dimension to a constant.
     example = (torch.zeros(2, student.n_obs), torch.zeros(2, student.hidden_size), torch.ones(2, 1))
     batch = torch.export.Dim("robots", min=1, max=1024)
-    torch.onnx.export(student, example, str(path), input_names=list(INPUTS), output_names=list(OUTPUTS),
-                      dynamic_shapes={"observation": {0: batch}, "hidden": {0: batch}, "first_step": {0: batch}},
-                      dynamo=True, external_data=False, verbose=False)
+    quiet = logging.getLogger("torch.onnx")
+    level, quiet.level = quiet.level, logging.ERROR  # its registry lists every torchvision op it skips
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(student, example, str(path), input_names=list(INPUTS), output_names=list(OUTPUTS),
+                              dynamic_shapes={"observation": {0: batch}, "hidden": {0: batch}, "first_step": {0: batch}},
+                              dynamo=True, external_data=False, verbose=False)
+    finally:
+        quiet.setLevel(level)
     return path
 
 

@@ -27,6 +27,7 @@ from pnp.deploy.messages import box_pose, check_header, episode_info, read_comma
 from pnp.deploy.proto import deploy_pb2 as pb
 from pnp.deploy.proto import deploy_pb2_grpc as pb_grpc
 from pnp.deploy.server import WorldClock, channel, refusing, serve
+from pnp.deploy.carry import CarryStrain, carry_summary
 from pnp.deploy.config import deploy_config
 from pnp.distill.config import distill_config
 from pnp.distill.student import make_student_env
@@ -219,7 +220,8 @@ def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None, on_start
             on_start()
         actor = RemoteActor(cfg, env, robots, coordinator, seed)
         t0 = time.monotonic()
-        records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress))
+        strain = CarryStrain(worlds) if num_robots == 2 else None
+        records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress), hook=strain)
         wall = time.monotonic() - t0
         done = actor.episodes if actor.episodes is not None else np.zeros(worlds, np.int64)
         coordinator.PublishEpisodes(episode_info(done, np.zeros((worlds, 2)), np.ones((worlds, 3)),
@@ -228,7 +230,8 @@ def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None, on_start
     finally:
         env.close()
         server.stop(grace=1.0)
-    return {"records": records, "summary": summarise(records), "seed": seed, "num_robots": num_robots,
+    summary = summarise(records) | ({"carry": carry_summary(records)} if strain is not None else {})
+    return {"records": records, "summary": summary, "seed": seed, "num_robots": num_robots,
             "worlds": worlds, "world": actor.counts, "mocap_dropouts_started": actor.mocap.started,
             "command_bus": {f"robot_{r}": line.stats() for r, line in robots.bus.items()},
             "latency": latency(robots.arrivals), "refused": robots.refused, "wall_s": wall,

@@ -107,15 +107,18 @@ def observation_transforms(cfg: DictConfig, view: str, seed: int) -> list[Transf
 
 
 def add_observation_noise(env: TransformedEnv, seed: int, scale: float | None = None,
-                          dropout_p: float | None = None) -> dict:
-    """The student's noise model (the schema's, with ``scale`` and ``dropout_p`` replaced where
-    given) on ``env``'s own observation, in place, before its reward schedule: a teacher
-    evaluated under the student's conditions. Returns the noise model used."""
+                          dropout_p: float | None = None, dropout_s: tuple[float, float] | None = None) -> dict:
+    """The student's noise model (the schema's, with ``scale``, ``dropout_p`` and the dropout
+    durations ``dropout_s`` (min, max) replaced where given) on ``env``'s own observation, in
+    place, before its reward schedule: a teacher evaluated under the student's conditions.
+    Returns the noise model used."""
     noise = OmegaConf.structured(NoiseConfig)
     if scale is not None:
         noise.scale = float(scale)
     if dropout_p is not None:
         noise.dropout.p = float(dropout_p)
+    if dropout_s is not None:
+        noise.dropout.min_s, noise.dropout.max_s = (float(x) for x in dropout_s)
     for t in noise_transforms(noise, OBS, OBS, seed, int(env.base_env.num_robots)):
         env.insert_transform(len(env.transform) - 1, t)
     return OmegaConf.to_container(noise)

@@ -7,7 +7,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[sim,train,test,deploy]"
+	$(PY) -m pip install -q -e ".[sim,train,test,deploy,cluster]"
 	touch $(STAMP)
 
 .PHONY: venv test test-all train benchmark render-deps

@@ -60,39 +60,43 @@ def check_worlds(msg, worlds: int) -> None:
         raise BadMessage(f"{type(msg).__name__}.worlds={msg.worlds}, this run has {worlds} worlds")
 
 
-def robot_state(robot_id: int, arrays: dict, steps, episodes, tick: int, stamp_s: float, seq: int) -> pb.RobotState:
-    """A RobotState from ``arrays`` (name -> [W, width], names of ``ROBOT_FIELDS``)."""
-    msg = pb.RobotState(header=header(robot_id, stamp_s, seq), worlds=len(steps), tick=tick)
-    for name in ROBOT_FIELDS:
+# Per-world scalar fields each message carries beside its arrays, with their types.
+_ROBOT_SCALARS = {"step": np.int64, "episode": np.int64}
+_BOX_SCALARS = {"visible": bool, "episode": np.int64}
+
+
+def _fill(msg, widths: dict, arrays: dict, scalars: dict):
+    for name in widths:
         put(msg, name, arrays[name])
-    put(msg, "step", steps)
-    put(msg, "episode", episodes)
+    for name, values in scalars.items():
+        put(msg, name, values)
     return msg
 
 
-def read_robot_state(msg: pb.RobotState, worlds: int) -> dict:
+def _read(msg, worlds: int, widths: dict, scalars: dict) -> dict:
     check_worlds(msg, worlds)
-    out = {name: get(msg, name, worlds, w) for name, w in ROBOT_FIELDS.items()}
-    out["step"] = get(msg, "step", worlds, None, np.int64)
-    out["episode"] = get(msg, "episode", worlds, None, np.int64)
+    out = {name: get(msg, name, worlds, w) for name, w in widths.items()}
+    out.update({name: get(msg, name, worlds, None, dtype) for name, dtype in scalars.items()})
     return out
+
+
+def robot_state(robot_id: int, arrays: dict, steps, episodes, tick: int, stamp_s: float, seq: int) -> pb.RobotState:
+    """A RobotState from ``arrays`` (name -> [W, width], names of ``ROBOT_FIELDS``)."""
+    msg = pb.RobotState(header=header(robot_id, stamp_s, seq), worlds=len(steps), tick=tick)
+    return _fill(msg, ROBOT_FIELDS, arrays, {"step": steps, "episode": episodes})
+
+
+def read_robot_state(msg: pb.RobotState, worlds: int) -> dict:
+    return _read(msg, worlds, ROBOT_FIELDS, _ROBOT_SCALARS)
 
 
 def box_pose(arrays: dict, visible, episodes, tick: int, stamp_s: float, seq: int) -> pb.BoxPose:
     msg = pb.BoxPose(header=header(0, stamp_s, seq), worlds=len(visible), tick=tick)
-    for name in BOX_FIELDS:
-        put(msg, name, arrays[name])
-    put(msg, "visible", visible)
-    put(msg, "episode", episodes)
-    return msg
+    return _fill(msg, BOX_FIELDS, arrays, {"visible": visible, "episode": episodes})
 
 
 def read_box_pose(msg: pb.BoxPose, worlds: int) -> dict:
-    check_worlds(msg, worlds)
-    out = {name: get(msg, name, worlds, w) for name, w in BOX_FIELDS.items()}
-    out["visible"] = get(msg, "visible", worlds, None, bool)
-    out["episode"] = get(msg, "episode", worlds, None, np.int64)
-    return out
+    return _read(msg, worlds, BOX_FIELDS, _BOX_SCALARS)
 
 
 def episode_info(episodes, goal, box_size, handle, num_robots: int, stamp_s: float, seq: int,

@@ -23,7 +23,7 @@ register()
 def main(cfg: DictConfig) -> None:
     run = Path(str(cfg.run))
     result = select(run, int(cfg.candidates), list(cfg.seeds), int(cfg.trials), int(cfg.num_worlds),
-                    bool(cfg.progress), nthread=int(cfg.nthread))
+                    bool(cfg.progress), nthread=cfg.nthread)
     plot_selection(result, run / "selection.png")
     for c in result["candidates"]:
         print(f"iteration {c['iteration']:6d}: " + ", ".join(f"seed {s} {100 * v:.1f} %" for s, v in c["success"].items()))

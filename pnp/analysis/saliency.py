@@ -36,7 +36,7 @@ from pnp.training.rollout import load_policy
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-DEFAULTS = {"checkpoint": None, "out": "runs/saliency", "episodes": 100, "seed": 12345, "nthread": 2,
+DEFAULTS = {"checkpoint": None, "out": "runs/saliency", "episodes": 100, "seed": 12345, "nthread": None,
             "max_episode_steps": None,  # null: the paper's 45 s
     "replot": False}  # true: redraw the PNGs from an existing <out>.json
 
@@ -126,7 +126,8 @@ def claims(result: dict) -> list[dict]:
     return table
 
 
-def saliency(checkpoint: str, episodes: int, seed: int, nthread: int, max_episode_steps: int | None = None) -> dict:
+def saliency(checkpoint: str, episodes: int, seed: int, nthread: int | None,
+             max_episode_steps: int | None = None) -> dict:
     pol = load_policy(checkpoint, episodes, seed, backend="mujoco", nthread=nthread,
                       max_episode_steps=max_episode_steps)
     env, actor, n = pol.env, pol.actor, episodes
@@ -216,7 +217,7 @@ def main(argv: list[str]) -> dict:
         plot(result, out)
         return result
     torch.set_num_threads(1)
-    result = saliency(cfg.checkpoint, int(cfg.episodes), int(cfg.seed), int(cfg.nthread), cfg.max_episode_steps)
+    result = saliency(cfg.checkpoint, int(cfg.episodes), int(cfg.seed), cfg.nthread, cfg.max_episode_steps)
     out.parent.mkdir(parents=True, exist_ok=True)
     result["plots"] = [str(p) for p in plot(result, out)]
     if result["num_robots"] == 2:

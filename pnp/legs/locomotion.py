@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 from dataclasses import dataclass
 
 from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
@@ -36,6 +35,7 @@ from pnp.sim.robot import (
 from pnp.sim.scene import PHYSICS_DT, PnPArena
 from pnp.task.stage_graph import StageGraph
 from pnp.task import ACTION_HIGH, ACTION_LOW
+from pnp.sim.cores import available_cores
 
 DECIMATION = 4  # physics steps per policy step (legged_gym)
 POLICY_DT = DECIMATION * PHYSICS_DT  # 0.02 s, 50 Hz
@@ -154,7 +154,7 @@ class LocomotionPhysics:
 
     def __init__(self, model: mujoco.MjModel, num_worlds: int, nthread: int | None = None):
         self.model, self.num_worlds = model, num_worlds
-        self.nthread = nthread or min(os.cpu_count() or 1, 8)
+        self.nthread = nthread or available_cores()
         self._models = [model] * num_worlds
         self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
         self._pool = rollout.Rollout(nthread=self.nthread)

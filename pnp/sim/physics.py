@@ -7,7 +7,6 @@ its own ``MjModel`` copy only because box sizes and masses are randomised per wo
 from __future__ import annotations
 
 import copy
-import os
 
 from pnp.sim import _offscreen  # noqa: F401  # sets MUJOCO_GL before mujoco loads
 
@@ -16,6 +15,7 @@ import numpy as np
 from mujoco import rollout
 
 from pnp.sim.box import BoxAsset, box_geometry
+from pnp.sim.cores import available_cores
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CTRL = mujoco.mjtState.mjSTATE_CTRL
@@ -26,7 +26,7 @@ class BatchedPhysics:
     def __init__(self, model: mujoco.MjModel, num_worlds: int, box_body: int, box_geoms, nthread: int | None = None):
         self.model = model
         self.num_worlds = num_worlds
-        self.nthread = nthread or min(os.cpu_count() or 1, 8)
+        self.nthread = nthread or available_cores()
         self.models = [copy.copy(model) for _ in range(num_worlds)]
         self.datas = [mujoco.MjData(model) for _ in range(self.nthread)]
         self._pool = rollout.Rollout(nthread=self.nthread)

@@ -67,7 +67,7 @@ def measure(cfg: DictConfig) -> dict:
     ckpt = load_checkpoint(path)
     base = migrate(ckpt["cfg"]).env.locomotion
     policy = load_locomotion_policy(str(path))
-    seed, nthread = int(cfg.seed), int(cfg.nthread)
+    seed, nthread = int(cfg.seed), cfg.nthread
     v, p, e = cfg.velocity, cfg.pushes, cfg.ee
 
     def loco_env(**changes):

@@ -71,7 +71,7 @@ class EnvConfig:
     num_robots: int = 1
     kinematic: KinematicOptions = field(default_factory=KinematicOptions)  # all off on MuJoCo
     boxes: Optional[str] = None  # null: the robot count's boxes (paper); single | dual: those assets
-    nthread: Optional[int] = 2
+    nthread: Optional[int] = None  # MuJoCo's pool; null: the cores this process may use
     max_episode_steps: Optional[int] = None  # null: the task env's own (pick-and-place: the paper's 45 s, 450 steps)
     start_range: List[float] = field(default_factory=lambda: list(START_RANGE))  # m, robots and box from the goal
     # S6 terms pay for staying released (envs/pnp_env.py); evaluation terminates at success.

@@ -19,7 +19,7 @@ class EvalEnv:
 
     backend: Optional[str] = MISSING
     num_worlds: int = MISSING
-    nthread: int = MISSING
+    nthread: Optional[int] = MISSING  # MuJoCo's pool; null: the cores this process may use
     max_episode_steps: Optional[int] = MISSING
     start_range: Optional[List[float]] = MISSING
     box_mass: Optional[List[float]] = None  # the student recipes do not set it
@@ -89,7 +89,7 @@ class SelectCheckpointConfig:
     seeds: List[int] = MISSING
     trials: int = MISSING
     num_worlds: int = MISSING
-    nthread: int = MISSING
+    nthread: Optional[int] = MISSING  # MuJoCo's pool; null: the cores this process may use
     progress: bool = MISSING
 
 
@@ -126,7 +126,7 @@ class LLQualityConfig:
     seed: int = MISSING
     dirty_reason: Optional[str] = MISSING
     out: Optional[str] = MISSING
-    nthread: int = MISSING
+    nthread: Optional[int] = MISSING  # MuJoCo's pool; null: the cores this process may use
     velocity: VelocityGrid = field(default_factory=VelocityGrid)
     pushes: Pushes = field(default_factory=Pushes)
     ee: EETracking = field(default_factory=EETracking)
@@ -138,7 +138,7 @@ class Table1Eval:
     backend: str = MISSING
     num_worlds: int = MISSING
     seed: int = MISSING
-    nthread: int = MISSING
+    nthread: Optional[int] = MISSING  # MuJoCo's pool; null: the cores this process may use
     start_range: Optional[List[float]] = MISSING
     max_episode_steps: Optional[int] = MISSING
 

@@ -1,14 +1,9 @@
 """How many threads torch gets in each part of an iteration (``cfg.threads``)."""
 from __future__ import annotations
 
-import os
-
 from omegaconf import DictConfig
 
-
-def available_cores() -> int:
-    """The cores this process may run on (its affinity mask, where the OS has one)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+from pnp.sim.cores import available_cores
 
 
 def torch_threads(threads: DictConfig) -> dict[str, int]:

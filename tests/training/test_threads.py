@@ -33,3 +33,15 @@ def test_the_trainer_sets_the_collect_and_update_counts(tmp_path, monkeypatch):
     finally:
         real(before)
     assert calls == [1, 2, 1, 2]
+
+
+def test_mujocos_pool_defaults_to_the_cores_this_process_may_use(monkeypatch):
+    from pnp.sim.backend import MujocoBackend
+    from pnp.sim.box import SINGLE_ROBOT_BOXES
+    from pnp.training.config import EnvConfig
+
+    assert OmegaConf.structured(EnvConfig).nthread is None  # the schema leaves it to the machine
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 3, 5}, raising=False)
+    backend = MujocoBackend(2, 1, SINGLE_ROBOT_BOXES[0])
+    assert backend.physics.nthread == available_cores() == 3  # a job pinned to 3 cores gets 3 threads
+    backend.close()

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -25,7 +24,7 @@ from pnp.deploy.messages import header, read_box_pose, read_episode_info, read_r
 from pnp.deploy.messages import command as command_message
 from pnp.deploy.proto import deploy_pb2 as pb
 from pnp.task import ACTION_HIGH, ACTION_LOW, OBS_BLOCKS, PnPState
-from pnp.task.geometry import BaseFrame
+from pnp.task.geometry import BaseFrame, geometry
 from pnp.task.observations import observations
 
 log = logging.getLogger("pnp.deploy.client")
@@ -58,7 +57,7 @@ def observation(own: int, states: dict[int, dict], box: dict, episodes: dict, nu
     """Robot ``own``'s clean observation [W, 1, 74], as the env forms it."""
     s = pnp_state(own, states, box, episodes, num_robots)
     last = torch.stack([torch.as_tensor(states[r]["last_action"]) for r in range(num_robots)], 1)
-    g = SimpleNamespace(own=torch.as_tensor(episodes["handle"]) == 1)  # the claims the world set
+    g = geometry(s, torch.as_tensor(episodes["handle"]))  # the world's claims; -1: the nearest-handle rule
     blocks = observations(s, g, last, BaseFrame(s), handle_order)
     return torch.cat([blocks[k] for k in OBS_BLOCKS], -1)[:, own : own + 1]
 
@@ -90,8 +89,9 @@ class RemoteRobotEnv(EnvBase):
         self.box = self.episodes = None
         self.episode = np.full(worlds, -1, np.int64)
         self.first_step = np.ones((worlds, 1), np.float32)
+        self.waiting = self.was_waiting = np.zeros(worlds, bool)
         self.obs = None
-        self.counts = {"steps": 0, "skipped_timer_ticks": 0, "missed_world_ticks": 0}
+        self.counts = {"steps": 0, "skipped_timer_ticks": 0, "missed_world_ticks": 0, "waiting_world_ticks": 0}
         self.finished = False
 
     def _poll(self) -> pb.Poll:
@@ -111,7 +111,9 @@ class RemoteRobotEnv(EnvBase):
         while True:
             state = self.world.Sense(self._poll())
             if state.worlds and state.tick != self.tick:
-                self.next_at = time.monotonic() + self.tick_s
+                # Fire again a little before the next state is due: the lock then re-forms by
+                # looking, whichever clock runs faster.
+                self.next_at = time.monotonic() + self.tick_s * 0.95
                 self.counts["missed_world_ticks"] += max(0, int(state.tick) - self.tick - 1) if self.tick >= 0 else 0
                 return state
             polls += 1
@@ -145,7 +147,18 @@ class RemoteRobotEnv(EnvBase):
         self.states[self.robot_id] = own
         changed = own["episode"] != self.episode
         self.episode = own["episode"].copy()
+        if self._ready():
+            self.was_waiting, self.waiting = self.waiting, self._other_episode()
+            self.counts["waiting_world_ticks"] += int(self.waiting.sum())
         return changed
+
+    def _other_episode(self) -> np.ndarray:
+        """[W]: the worlds whose relayed box or neighbour still belongs to another episode
+        than the robot's own (a trial just began and the relay is late): they are held."""
+        other = self.box["episode"] != self.episode
+        for r in range(self.num_robots):
+            other |= self.states[r]["episode"] != self.episode
+        return other
 
     def _ready(self) -> bool:
         return (self.box is not None and self.episodes is not None
@@ -172,10 +185,11 @@ class RemoteRobotEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(("agents", "action"))[:, 0].numpy()
         self.seq += 1
-        self.world.Act(command_message(self.robot_id, action, max(self.tick, 0), 0.0, self.seq))
-        self.first_step[:] = 0.0
+        self.world.Act(command_message(self.robot_id, action, self.waiting, max(self.tick, 0), 0.0, self.seq))
         self.counts["steps"] += 1
         changed = self._sense()
+        # The GRU starts again on a held world's first step with data of its episode.
+        self.first_step[:] = (self.waiting | self.was_waiting).astype(np.float32)[:, None]
         self.obs = self._observe()
         done = torch.as_tensor(changed).reshape(-1, 1)
         return TensorDict({"agents": TensorDict({"observation": self.obs.clone(),
@@ -187,15 +201,18 @@ class RemoteRobotEnv(EnvBase):
         return seed
 
 
-def student_transforms(scfg, sensor_noise: bool, seed: int) -> list:
-    """The student's observation transforms of training (``pnp.distill.student``); without
-    ``sensor_noise`` the noise is zero and never drops out (exact sensors)."""
+def student_transforms(scfg, sensor_noise: bool, sensor_dropouts: bool, seed: int) -> list:
+    """The student's observation transforms of training (``pnp.distill.student``): without
+    ``sensor_noise`` no Gaussian noise, without ``sensor_dropouts`` none of the noise
+    model's own box dropouts (the mocap's faults then are the only ones)."""
     from pnp.distill.student import history_transform, noise_transforms
     from pnp.training.keys import OBS, STUDENT_OBS
 
     noise = scfg.noise.copy()
     if not sensor_noise:
-        noise.scale, noise.dropout.p = 0.0, 0.0
+        noise.scale = 0.0
+    if not sensor_dropouts:
+        noise.dropout.p = 0.0
     return [*noise_transforms(noise, OBS, STUDENT_OBS, seed, int(scfg.env.num_robots)), history_transform(scfg.student)]
 
 
@@ -220,7 +237,7 @@ def run_client(cfg, onnx_path: str) -> dict:
     base = RemoteRobotEnv(rid, world, coordinator, int(reply.worlds), int(reply.num_robots), scfg.env.handle_order,
                           float(reply.tick_s))
     # Each robot's sensors draw their own noise: a seed per robot.
-    env = TransformedEnv(base, Compose(*student_transforms(scfg, bool(cfg.sensor_noise),
+    env = TransformedEnv(base, Compose(*student_transforms(scfg, bool(cfg.sensor_noise), bool(cfg.sensor_dropouts),
                                                            resolve_seed(cfg.seed) + 1000 * (rid + 1))))
     policy = OnnxStudent(onnx_path, n_robots=int(reply.worlds))
     log.info("robot %d: %d worlds, a tick every %.3f s", rid, reply.worlds, reply.tick_s)

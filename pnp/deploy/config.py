@@ -65,11 +65,14 @@ class DeployConfig:
     time_scale: float = 1.0      # world seconds per real second (1: real time)
     # A command answering tick k counts if it arrives by this share of the tick; later: late.
     deadline_share: float = 0.8
-    # The low level holds (zero base velocity, EE where it is) when its newest command is
-    # older than this (world s); a watchdog time-out is logged.
+    # The low level holds (zero base velocity, its last EE target and gripper) when its newest
+    # command is older than this (world s); a watchdog time-out is logged.
     command_timeout_s: float = 0.1
     relay_freshest: bool = False  # the coordinator keeps the newest by sequence number, not the last to arrive
-    sensor_noise: bool = True     # the student's training noise model on its observation (simulated sensors)
+    # The student's training noise model on its observation (simulated sensors): its Gaussian
+    # noise, and its own box dropouts (p 0.01 per step, 0.2-2 s) beside any mocap faults.
+    sensor_noise: bool = True
+    sensor_dropouts: bool = True
     faults: FaultConfig = field(default_factory=FaultConfig)
     host: str = "127.0.0.1"       # where this machine's servers listen
     coordinator_port: int = 0     # 0: a free port
@@ -111,5 +114,8 @@ def check(cfg: DictConfig) -> None:
     m = cfg.faults.mocap
     if m.rate_hz < 0 or not 0 <= m.min_s <= m.max_s:
         raise ValueError(f"faults.mocap: need rate_hz >= 0 and 0 <= min_s <= max_s, got {OmegaConf.to_container(m)}")
+    if cfg.command_timeout_s < 0 or cfg.faults.restart.at_s < 0 or cfg.faults.restart.down_s < 0:
+        raise ValueError(f"command_timeout_s={cfg.command_timeout_s}, faults.restart.at_s={cfg.faults.restart.at_s}, "
+                         f"faults.restart.down_s={cfg.faults.restart.down_s}: each must be >= 0")
     if cfg.trials < 1 or cfg.worlds < 1:
         raise ValueError(f"trials={cfg.trials}, worlds={cfg.worlds}: both must be >= 1")

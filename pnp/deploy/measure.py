@@ -5,8 +5,14 @@ evaluation layouts, compared where it says with the same trials in process.
   with the control loop's latency and the exported student's inference time.
 - ``grid``: success and completion time against link delay x message loss.
 - ``dropouts``: mocap dropouts of fixed lengths, the deployed student against its teacher
-  in process under the same dropout process on its box fields (the teacher reads the
-  simulator's stage: it cannot run over the wire).
+  in process under the same dropout process on its box fields and the same Gaussian noise
+  (the teacher reads the simulator's stage: it cannot run over the wire). The student's own
+  noise-model dropouts are off there, so the mocap's are the only ones. One difference
+  stays: the teacher's held box fields are in its base frame as they were, while a robot
+  re-projects the stale world-frame pose as it moves.
+
+A fault on a message acts on all W worlds it carries, so the W trials of a batch share it:
+intervals over trials are narrower than they should be under loss or reordering.
 """
 from __future__ import annotations
 
@@ -29,9 +35,9 @@ _ROW_KEYS = ("trials", "success_rate", "completion_time_mean_s", "completion_tim
 
 def _row(result: dict, **settings) -> dict:
     s = result["summary"]
-    return {**settings, **{k: s[k] for k in _ROW_KEYS if k in s}, "watchdog_holds": result["world"]["watchdog"],
-            "stale_commands": result["world"]["stale_commands"], "overruns": result["world"]["overruns"],
-            "links": result["coordinator"]["links"], "wall_s": result["wall_s"]}
+    return {**settings, **{k: s[k] for k in _ROW_KEYS if k in s}, "world": result["world"],
+            "tick_period": result["tick_period"], "clients": result["clients"], "links": result["coordinator"]["links"],
+            "wall_s": result["wall_s"]}
 
 
 def deployed(base: DictConfig, workdir: Path, name: str, **overrides) -> dict:
@@ -45,9 +51,13 @@ def in_process_student(base: DictConfig) -> list[dict]:
     from pnp.training.protocol import resolve_seed
     from pnp.training.rollout import run_trials
 
-    s = load_student(base.checkpoint, num_worlds=min(int(base.worlds), int(base.trials)), seed=resolve_seed(base.seed),
-                     backend=base.backend, low_level=base.low_level)
-    records = run_trials(s.env, s.actor, int(base.trials), bool(base.progress))
+    from pnp.deploy.carry import CarryStrain
+
+    worlds = min(int(base.worlds), int(base.trials))
+    s = load_student(base.checkpoint, num_worlds=worlds, seed=resolve_seed(base.seed), backend=base.backend,
+                     low_level=base.low_level)
+    hook = CarryStrain(worlds) if int(s.cfg.env.num_robots) == 2 else None  # the pull's reference
+    records = run_trials(s.env, s.actor, int(base.trials), bool(base.progress), hook=hook)
     s.env.close()
     return records
 
@@ -69,9 +79,12 @@ def fault_free(base: DictConfig, workdir: Path) -> dict:
     from pnp.training.paired import paired_comparison
     from pnp.training.rollout import summarise
 
+    from pnp.deploy.carry import carry_summary
+
     result = deployed(base, workdir, "fault_free")
     reference = in_process_student(base)
-    return {"deployed": _row(result), "in_process": summarise(reference),
+    in_process = summarise(reference) | ({"carry": carry_summary(reference)} if "carry" in result["summary"] else {})
+    return {"deployed": _row(result), "in_process": in_process, "tick_period": result["tick_period"],
             "paired": paired_comparison(result["records"], reference), "latency": result["latency"],
             "inference": inference_time(base.checkpoint, workdir),
             "trial_records": {"deployed": result["records"], "in_process": reference}}
@@ -97,7 +110,7 @@ def teacher_with_dropouts(base: DictConfig, teacher: str, length_s: float) -> di
     seed = resolve_seed(base.seed)
     pol = load_policy(teacher, min(int(base.worlds), int(base.trials)), seed, backend=base.backend,
                       low_level=base.low_level)
-    add_observation_noise(pol.env, seed, scale=0.0, dropout_p=DROPOUT_RATE_HZ * HL_DT, dropout_s=(length_s, length_s))
+    add_observation_noise(pol.env, seed, dropout_p=DROPOUT_RATE_HZ * HL_DT, dropout_s=(length_s, length_s))
     records = run_trials(pol.env, pol.actor, int(base.trials), bool(base.progress))
     pol.env.close()
     return summarise(records)
@@ -106,7 +119,8 @@ def teacher_with_dropouts(base: DictConfig, teacher: str, length_s: float) -> di
 def dropouts(base: DictConfig, workdir: Path, teacher: str, lengths=DROPOUTS_S) -> list[dict]:
     rows = []
     for length in lengths:
-        mocap = {"faults.mocap.rate_hz": DROPOUT_RATE_HZ, "faults.mocap.min_s": length, "faults.mocap.max_s": length}
+        mocap = {"faults.mocap.rate_hz": DROPOUT_RATE_HZ, "faults.mocap.min_s": length, "faults.mocap.max_s": length,
+                 "sensor_dropouts": False}
         student = deployed(base, workdir, f"dropout_{length}", **mocap)
         rows.append({"dropout_s": length, "rate_hz": DROPOUT_RATE_HZ, "student_deployed": _row(student),
                      "teacher_in_process": {k: v for k, v in teacher_with_dropouts(base, teacher, length).items()

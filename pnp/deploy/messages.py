@@ -117,12 +117,14 @@ def read_episode_info(msg: pb.EpisodeInfo, worlds: int, num_robots: int) -> dict
             "finished": bool(msg.finished)}
 
 
-def command(robot_id: int, action, tick: int, stamp_s: float, seq: int) -> pb.Command:
+def command(robot_id: int, action, hold, tick: int, stamp_s: float, seq: int) -> pb.Command:
     msg = pb.Command(header=header(robot_id, stamp_s, seq), worlds=len(action), tick=tick)
     put(msg, "action", action)
+    put(msg, "hold", hold)
     return msg
 
 
-def read_command(msg: pb.Command, worlds: int) -> np.ndarray:
+def read_command(msg: pb.Command, worlds: int) -> tuple[np.ndarray, np.ndarray]:
+    """The actions [W, 8] and the worlds held [W]."""
     check_worlds(msg, worlds)
-    return get(msg, "action", worlds, ACTION_WIDTH)
+    return get(msg, "action", worlds, ACTION_WIDTH), get(msg, "hold", worlds, None, bool)

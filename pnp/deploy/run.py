@@ -27,8 +27,9 @@ from pnp.deploy.config import deploy_config
 
 def _start(module: str, args: list[str], log_path: Path) -> subprocess.Popen:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen([sys.executable, "-m", f"pnp.deploy.{module}", *args], stdout=subprocess.PIPE,
-                            stderr=open(log_path, "w"), text=True, env=env)
+    with open(log_path, "w") as log:  # the child keeps its own handle
+        return subprocess.Popen([sys.executable, "-m", f"pnp.deploy.{module}", *args], stdout=subprocess.PIPE,
+                                stderr=log, text=True, env=env)
 
 
 def _address(proc: subprocess.Popen, what: str, timeout_s: float = 120.0) -> str:
@@ -46,26 +47,40 @@ def _address(proc: subprocess.Popen, what: str, timeout_s: float = 120.0) -> str
     return line.strip().rsplit(" ", 1)[-1]
 
 
-def _restart(cfg, clients: dict, client_args, logs: Path, world: subprocess.Popen) -> list[dict]:
+class _Restart:
     """The client-restart fault: kill robot r's client at world time at_s (from the world's
-    first tick), start it again down_s later."""
-    fault, events = cfg.faults.restart, []
-    if fault.robot < 0:
-        return events
+    first tick), start it again down_s later; never after ``stop``."""
 
-    def run():
-        while "ticking" not in world.stdout.readline():
-            if world.poll() is not None:
+    def __init__(self, cfg, clients: dict, client_args, logs: Path, world: subprocess.Popen):
+        self.cfg, self.clients, self.client_args, self.logs, self.world = cfg, clients, client_args, logs, world
+        self.events: list[dict] = []
+        self.stopped = threading.Event()
+        self.lock = threading.Lock()
+        if cfg.faults.restart.robot >= 0:
+            threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self):
+        fault, scale = self.cfg.faults.restart, self.cfg.time_scale
+        while "ticking" not in self.world.stdout.readline():
+            if self.world.poll() is not None:
                 return
         started = time.monotonic()
-        time.sleep(fault.at_s / cfg.time_scale)
-        clients[fault.robot].kill()
-        events.append({"event": "killed", "robot": int(fault.robot), "real_s": round(time.monotonic() - started, 3)})
-        time.sleep(fault.down_s / cfg.time_scale)
-        clients[fault.robot] = _start("client", client_args(fault.robot), logs / f"client{fault.robot}_restarted.log")
-        events.append({"event": "restarted", "robot": int(fault.robot), "real_s": round(time.monotonic() - started, 3)})
-    threading.Thread(target=run, daemon=True).start()
-    return events
+        for wait, act in ((fault.at_s / scale, "killed"), (fault.down_s / scale, "restarted")):
+            if self.stopped.wait(wait):
+                return
+            with self.lock:
+                if self.stopped.is_set():
+                    return
+                r = int(fault.robot)
+                if act == "killed":
+                    self.clients[r].kill()
+                else:
+                    self.clients[r] = _start("client", self.client_args(r), self.logs / f"client{r}_restarted.log")
+                self.events.append({"event": act, "robot": r, "real_s": round(time.monotonic() - started, 3)})
+
+    def stop(self):
+        with self.lock:
+            self.stopped.set()
 
 
 def run(cfg, workdir: Path) -> dict:
@@ -85,7 +100,9 @@ def run(cfg, workdir: Path) -> dict:
                            "robot_id", "progress") and v is not None]
     common += [f"faults.{a}.{k}={v}" for a, f in OmegaConf.to_container(cfg.faults).items() for k, v in f.items()]
     common += [f"worlds={worlds}", f"robots={robots}"]
-    procs = {}
+    if cfg.faults.restart.robot >= robots:
+        raise ValueError(f"faults.restart.robot={cfg.faults.restart.robot}: this student has robots 0..{robots - 1}")
+    procs, clients, restart = {}, {}, None
     try:
         procs["coordinator"] = _start("coordinator", [*common, f"out={workdir / 'coordinator.json'}"],
                                       workdir / "coordinator.log")
@@ -97,28 +114,31 @@ def run(cfg, workdir: Path) -> dict:
         def client_args(r):
             return [*common, f"robot_id={r}", f"coordinator_address={coordinator}", f"world_address={world}",
                     f"onnx={onnx}", f"out={workdir / f'client{r}.json'}"]
-        clients = {r: _start("client", client_args(r), workdir / f"client{r}.log") for r in range(robots)}
-        events = _restart(cfg, clients, client_args, workdir, procs["world"])
+        clients.update({r: _start("client", client_args(r), workdir / f"client{r}.log") for r in range(robots)})
+        restart = _Restart(cfg, clients, client_args, workdir, procs["world"])
         if procs["world"].wait() != 0:
             raise RuntimeError(f"the world failed (exit {procs['world'].returncode}): {workdir / 'world.log'}")
-        for r, proc in clients.items():
+        restart.stop()
+        for proc in list(clients.values()):
             try:
                 proc.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 proc.kill()
     finally:
-        for proc in procs.values():
+        if restart is not None:
+            restart.stop()
+        for proc in [*procs.values(), *clients.values()]:
             if proc.poll() is None:
                 proc.terminate()
-                proc.wait(timeout=10)
-        for proc in locals().get("clients", {}).values():
-            if proc.poll() is None:
-                proc.kill()
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
     result = json.loads((workdir / "world.json").read_text())
     result["coordinator"] = json.loads((workdir / "coordinator.json").read_text())
     result["clients"] = {f"robot_{r}": (json.loads(p.read_text()) if (p := workdir / f"client{r}.json").exists() else None)
                          for r in range(robots)}
-    result["restart_events"] = events
+    result["restart_events"] = restart.events
     result["config"] = OmegaConf.to_container(cfg)
     return result
 

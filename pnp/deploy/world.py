@@ -18,12 +18,13 @@ import threading
 import time
 from pathlib import Path
 
+import grpc
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.deploy.faults import DelayLine, MocapDropouts
-from pnp.deploy.messages import box_pose, check_header, episode_info, read_command, robot_state
+from pnp.deploy.messages import BadMessage, box_pose, check_header, episode_info, read_command, robot_state
 from pnp.deploy.proto import deploy_pb2 as pb
 from pnp.deploy.proto import deploy_pb2_grpc as pb_grpc
 from pnp.deploy.server import WorldClock, channel, refusing, serve
@@ -65,6 +66,7 @@ class Robots(pb_grpc.RobotServicer):
         self.sensed = set()
         self.refused: dict[str, int] = {}
         self.published_at: dict[int, float] = {}  # tick -> real time its states were published
+        self.tick = 0  # the newest tick published
         self.arrivals: dict[int, list[float]] = {r: [] for r in range(num_robots)}  # real s from state to command
         self._lock = threading.Lock()
 
@@ -80,19 +82,23 @@ class Robots(pb_grpc.RobotServicer):
     @refusing
     def Act(self, request, context):
         check_header(request.header, self.num_robots, "Act")
-        action = read_command(request, self.worlds)
+        action, hold = read_command(request, self.worlds)
         rid, tick = request.header.robot_id, int(request.tick)
         with self._lock:
-            sent = self.published_at.get(tick)
+            sent, now_tick = self.published_at.get(tick), self.tick
+        if tick > now_tick:
+            raise BadMessage(f"Command.tick={tick} answers a state not yet published (the world is at tick {now_tick})")
         if sent is not None:
             self.arrivals[rid].append(time.monotonic() - sent)
-        self.bus[rid].push((tick, action))
+        self.bus[rid].push((tick, action, hold))
         return pb.Ack(ok=True)
 
 
 class RemoteActor:
     """``run_trials``' actor: one call is one control tick of the world (publish, wait for
-    the robots until the deadline, write their commands as the action)."""
+    the robots until the deadline, write their commands as the action). Ticks follow a
+    fixed schedule (tick k at start + k x tick); a late tick is counted and the schedule
+    moves on from it."""
 
     def __init__(self, cfg: DictConfig, env, robots: Robots, coordinator, seed: int):
         self.cfg, self.env, self.base, self.robots, self.coordinator = cfg, env, env.base_env, robots, coordinator
@@ -100,58 +106,82 @@ class RemoteActor:
         self.clock, self.tick_real = robots.clock, robots.clock.real(HL_DT)
         self.mocap = MocapDropouts(cfg.faults.mocap, self.worlds, HL_DT, seed + 300)
         self.tick, self.seq, self.next_at = 0, 0, None
-        self.commands = {r: (-1, None) for r in range(self.num_robots)}  # newest (tick, action) delivered
+        # Newest command delivered per robot: (tick it answers, actions [W, 8], held worlds [W]).
+        self.commands = {r: (-1, None, None) for r in range(self.num_robots)}
         self.episodes = None
-        self.counts = {"ticks": 0, "overruns": 0, "watchdog": [0] * self.num_robots,
-                       "stale_commands": [0] * self.num_robots}
+        self.episode_start = np.zeros(self.worlds, np.int64)  # the tick each world's episode began
+        self.starts: list[float] = []
+        self.counts = {"ticks": 0, "late_ticks": 0, "watchdog": [0] * self.num_robots,
+                       "stale_commands": [0] * self.num_robots, "held_worlds": [0] * self.num_robots,
+                       "coordinator_errors": 0}
+
+    def _send(self, call, message) -> None:
+        """A publish to the coordinator; one that fails is a lost message, not the end of the run."""
+        try:
+            call(message, timeout=self.tick_real)
+        except grpc.RpcError as error:
+            self.counts["coordinator_errors"] += 1
+            if self.counts["coordinator_errors"] in (1, 10, 100):
+                log.warning("coordinator unreachable (%s): %d messages lost", error.code().name,
+                            self.counts["coordinator_errors"])
 
     def _publish(self) -> None:
+        """Episodes and the box first, then the robots' states: a robot that sees its new
+        state and fetches at once finds the coordinator already holding this tick's episodes."""
         s, base = self.base.physical_state(), self.base
         steps, episodes = base._steps.numpy().copy(), base.trial.numpy().copy()
+        self.episode_start = np.where(steps == 0, self.tick, self.episode_start)
         stamp = self.clock()
         self.seq += 1
-        states = {r: robot_state(r, robot_arrays(s, base._last_action, r), steps, episodes, self.tick, stamp, self.seq)
-                  for r in range(self.num_robots)}
-        with self.robots._lock:
-            self.robots.states = states
-            self.robots.published_at[self.tick] = time.monotonic()
-            self.robots.published_at.pop(self.tick - 50, None)
         if self.episodes is None or not np.array_equal(self.episodes, episodes):
             self.episodes = episodes
             claim = base._claim.numpy() if base.handle_claim else np.full((self.worlds, self.num_robots), -1)
-            self.coordinator.PublishEpisodes(episode_info(
+            self._send(self.coordinator.PublishEpisodes, episode_info(
                 episodes, s.goal.numpy(), s.box_size.numpy(), claim, self.num_robots, stamp, self.seq))
-        visible = self.mocap.visible() | (steps == 0)  # an episode starts with the box seen
-        self.coordinator.PublishMocap(box_pose(box_arrays(s), visible, episodes, self.tick, stamp, self.seq))
+        visible = self.mocap.visible() | (steps == 0)  # a new episode's first pose is always sent
+        self._send(self.coordinator.PublishMocap, box_pose(box_arrays(s), visible, episodes, self.tick, stamp, self.seq))
+        states = {r: robot_state(r, robot_arrays(s, base._last_action, r), steps, episodes, self.tick, stamp, self.seq)
+                  for r in range(self.num_robots)}
+        with self.robots._lock:
+            self.robots.states, self.robots.tick = states, self.tick
+            self.robots.published_at[self.tick] = time.monotonic()
+            self.robots.published_at.pop(self.tick - 50, None)
 
     def _collect(self) -> torch.Tensor:
-        """[W, R, 8]: each robot's newest command if it is fresh enough, else the hold."""
-        last = self.base._last_action.clone()
-        action = last.clone()
+        """[W, R, 8]: per world, each robot's newest command if it is fresh enough and of
+        this episode and not held, else the hold (no base motion, the last EE target and
+        gripper kept)."""
+        action = self.base._last_action.clone()
         for r in range(self.num_robots):
-            for tick, a in self.robots.bus[r].pop_due():
+            for tick, a, hold in self.robots.bus[r].pop_due():
                 if tick > self.commands[r][0]:
-                    self.commands[r] = (tick, a)
-            tick, a = self.commands[r]
-            age_s = (self.tick - tick) * HL_DT
-            if a is not None and age_s <= self.cfg.command_timeout_s + 1e-9:
-                action[:, r] = torch.as_tensor(a)
+                    self.commands[r] = (tick, a, hold)
+            tick, a, hold = self.commands[r]
+            fresh = a is not None and (self.tick - tick) * HL_DT <= self.cfg.command_timeout_s + 1e-9
+            use = (torch.as_tensor(~hold & (tick >= self.episode_start)) if fresh
+                   else torch.zeros(self.worlds, dtype=torch.bool))
+            if fresh:
+                action[:, r] = torch.where(use[:, None], torch.as_tensor(a), action[:, r])
                 self.counts["stale_commands"][r] += int(tick != self.tick)
-            else:  # the low level holds: no base motion, the last EE target and gripper kept
-                action[:, r, HOLD] = 0.0
+                self.counts["held_worlds"][r] += int((~use).sum())
+            else:
                 self.counts["watchdog"][r] += 1
                 if self.counts["watchdog"][r] in (1, 10, 100) or self.counts["watchdog"][r] % 1000 == 0:
                     log.warning("watchdog: robot %d has no command younger than %.2f s at tick %d (%d holds so far)",
                                 r, self.cfg.command_timeout_s, self.tick, self.counts["watchdog"][r])
+            action[:, r, HOLD] = torch.where(use[:, None], action[:, r, HOLD], torch.zeros(()))
         return action
 
     def __call__(self, td):
         now = time.monotonic()
-        if self.next_at is not None:
-            if now > self.next_at + 0.5 * self.tick_real:
-                self.counts["overruns"] += 1  # the physics took more than its share of the tick
-            time.sleep(max(0.0, self.next_at - now))
-        start = time.monotonic()
+        if self.next_at is None:
+            self.next_at = now
+        elif now > self.next_at + 0.05 * self.tick_real:  # the physics ran past this tick's start
+            self.counts["late_ticks"] += 1
+            self.next_at = now
+        time.sleep(max(0.0, self.next_at - now))
+        start = self.next_at
+        self.starts.append(time.monotonic())
         self._publish()
         time.sleep(max(0.0, start + self.cfg.deadline_share * self.tick_real - time.monotonic()))
         td.set(ACTION, self._collect())
@@ -159,6 +189,14 @@ class RemoteActor:
         self.tick += 1
         self.counts["ticks"] += 1
         return td
+
+    def tick_period(self) -> dict:
+        """The measured real seconds between ticks (the schedule asks for ``tick_real``)."""
+        gaps = np.diff(np.asarray(self.starts))
+        if not len(gaps):
+            return {}
+        return {"asked_s": self.tick_real, "mean_s": float(gaps.mean()), "p99_s": float(np.percentile(gaps, 99)),
+                "max_s": float(gaps.max())}
 
 
 def wait_for_robots(robots: Robots, timeout_s: float = 120.0) -> None:
@@ -224,15 +262,16 @@ def run_world(cfg: DictConfig, coordinator_address: str, on_ready=None, on_start
         records = run_trials(env, actor, int(cfg.trials), bool(cfg.progress), hook=strain)
         wall = time.monotonic() - t0
         done = actor.episodes if actor.episodes is not None else np.zeros(worlds, np.int64)
-        coordinator.PublishEpisodes(episode_info(done, np.zeros((worlds, 2)), np.ones((worlds, 3)),
-                                                 np.full((worlds, num_robots), -1), num_robots, clock(), actor.seq + 1,
-                                                 finished=True))
+        actor._send(coordinator.PublishEpisodes, episode_info(
+            done, np.zeros((worlds, 2)), np.ones((worlds, 3)), np.full((worlds, num_robots), -1), num_robots, clock(),
+            actor.seq + 1, finished=True))
     finally:
         env.close()
         server.stop(grace=1.0)
     summary = summarise(records) | ({"carry": carry_summary(records)} if strain is not None else {})
     return {"records": records, "summary": summary, "seed": seed, "num_robots": num_robots,
-            "worlds": worlds, "world": actor.counts, "mocap_dropouts_started": actor.mocap.started,
+            "worlds": worlds, "world": actor.counts, "tick_period": actor.tick_period(),
+            "mocap_dropouts_started": actor.mocap.started,
             "command_bus": {f"robot_{r}": line.stats() for r, line in robots.bus.items()},
             "latency": latency(robots.arrivals), "refused": robots.refused, "wall_s": wall,
             "student_config": OmegaConf.to_container(OmegaConf.masked_copy(scfg, ["noise", "student"]))}

@@ -57,6 +57,8 @@ def test_refusals_name_what_is_wrong(servers, caplog):
              "robot_id=3")
     _refused(robot_stub.Act, pb.Command(header=header(0, 0.0, 1), worlds=WORLDS, action=[0.0] * 5),
              grpc.StatusCode.INVALID_ARGUMENT, "Command.action: 5 values, expected 16")
+    _refused(robot_stub.Act, pb.Command(header=header(0, 0.0, 1), worlds=WORLDS, action=[0.0] * 16, hold=[False] * 2,
+                                        tick=9), grpc.StatusCode.INVALID_ARGUMENT, "Command.tick=9 answers a state not yet")
     assert coordinator.refused == {"FAILED_PRECONDITION": 1, "NOT_FOUND": 1, "INVALID_ARGUMENT": 2}
     assert any("refused PublishState" in r.getMessage() for r in caplog.records)
 

@@ -31,5 +31,8 @@ def test_fault_free_runtime_matches_the_in_process_student(tmp_path):
     comparison = paired_comparison(deployed["records"], in_process)
     low, high = comparison["success_diff_interval"]
     assert low <= 0.0 <= high, comparison
-    assert deployed["world"]["watchdog"][0] <= 2  # at most the first tick(s) before the first command
+    world = deployed["world"]
+    assert world["watchdog"][0] <= 2  # at most the first tick(s) before the first command
+    assert world["stale_commands"][0] <= 0.05 * world["ticks"] and world["late_ticks"] <= 0.05 * world["ticks"]
+    assert deployed["clients"]["robot_0"]["missed_world_ticks"] <= 0.05 * world["ticks"]
     assert deployed["clients"]["robot_0"]["steps"] > 0 and deployed["coordinator"]["refused"] == {}

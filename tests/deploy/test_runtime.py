@@ -22,7 +22,7 @@ TRIALS = 4
 @pytest.mark.timeout(300)
 def test_fault_free_runtime_matches_the_in_process_student(tmp_path):
     checkpoint = str(ROOT / "results" / "eval_student_single_checkpoint.pt")
-    cfg = deploy_config([f"checkpoint={checkpoint}", f"trials={TRIALS}", f"worlds={TRIALS}", "time_scale=2",
+    cfg = deploy_config([f"checkpoint={checkpoint}", f"trials={TRIALS}", f"worlds={TRIALS}", "time_scale=1",
                          "progress=false"])
     deployed = run(cfg, tmp_path)
     student = load_student(checkpoint, num_worlds=TRIALS, seed=resolve_seed(cfg.seed))

@@ -62,15 +62,11 @@ def in_process_student(base: DictConfig) -> list[dict]:
     return records
 
 
-def inference_time(checkpoint: str, workdir: Path) -> dict:
-    """The exported student per call under onnxruntime, one robot and one thread."""
-    from pnp.deploy.export import OnnxStudent, deployed_student, export_onnx, time_inference
-    from pnp.deploy.student_io import load_student
+def inference_time(onnx_path: Path) -> dict:
+    """An exported student per call under onnxruntime, one robot and one thread."""
+    from pnp.deploy.export import OnnxStudent, time_inference
 
-    s = load_student(checkpoint)
-    path = export_onnx(deployed_student(s.actor), workdir / "timing.onnx")
-    s.env.close()
-    onnx = OnnxStudent(path, 1)
+    onnx = OnnxStudent(onnx_path, 1)
     obs, first = np.zeros((1, onnx.n_obs), np.float32), np.zeros((1, 1), np.float32)
     return {"onnxruntime_one_robot": time_inference(lambda: onnx.step(obs, first), 500)}
 
@@ -86,7 +82,7 @@ def fault_free(base: DictConfig, workdir: Path) -> dict:
     in_process = summarise(reference) | ({"carry": carry_summary(reference)} if "carry" in result["summary"] else {})
     return {"deployed": _row(result), "in_process": in_process, "tick_period": result["tick_period"],
             "paired": paired_comparison(result["records"], reference), "latency": result["latency"],
-            "inference": inference_time(base.checkpoint, workdir),
+            "inference": inference_time(workdir / "fault_free" / "student.onnx"),  # the file the run used
             "trial_records": {"deployed": result["records"], "in_process": reference}}
 
 

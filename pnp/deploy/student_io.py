@@ -22,14 +22,22 @@ class LoadedStudent:
     actor: object
 
 
-def load_student(path: str | Path, num_worlds: int = 1, seed: int = 0, **env_overrides) -> LoadedStudent:
-    """The student of checkpoint ``path`` in an evaluation env of ``num_worlds`` worlds (paper
-    layouts, seeded by ``seed``; ``env_overrides`` as ``recipes/evaluate_student.py``'s env.*)."""
+def student_env(path: str | Path, num_worlds: int = 1, seed: int = 0, view: str = "student",
+                **env_overrides) -> tuple[DictConfig, dict, TransformedEnv]:
+    """The student of checkpoint ``path``: its configuration, checkpoint and an evaluation env of
+    ``num_worlds`` worlds (paper layouts, seeded by ``seed``; ``env_overrides`` as
+    ``recipes/evaluate_student.py``'s env.*) with the observation transforms of ``view``
+    (``pnp.distill.student.VIEWS``; ``clean``: none, the deployment's world)."""
     ckpt = load_checkpoint(Path(path))
     if "distill" not in ckpt["cfg"]:
         raise ValueError(f"{path} is a teacher's checkpoint (no distill section): deployment runs a student")
     cfg = distill_config(ckpt["cfg"])
     evaluation_env_config(cfg.env, num_worlds, **env_overrides)
     seed_everything(seed)
-    env = make_student_env(cfg, seed, "student")
+    return cfg, ckpt, make_student_env(cfg, seed, view)
+
+
+def load_student(path: str | Path, num_worlds: int = 1, seed: int = 0, **env_overrides) -> LoadedStudent:
+    """:func:`student_env` with the student's observation and its actor."""
+    cfg, ckpt, env = student_env(path, num_worlds, seed, "student", **env_overrides)
     return LoadedStudent(cfg, ckpt, env, load_student_actor(cfg, env, ckpt))

@@ -28,15 +28,13 @@ from pnp.deploy.messages import BadMessage, box_pose, check_header, episode_info
 from pnp.deploy.proto import deploy_pb2 as pb
 from pnp.deploy.proto import deploy_pb2_grpc as pb_grpc
 from pnp.deploy.server import WorldClock, channel, refusing, serve
+from pnp.deploy.student_io import student_env
 from pnp.deploy.carry import CarryStrain, carry_summary
 from pnp.deploy.config import deploy_config
-from pnp.distill.config import distill_config
-from pnp.distill.student import make_student_env
 from pnp.task import HL_DT
-from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.keys import ACTION
 from pnp.training.protocol import resolve_seed
-from pnp.training.rollout import evaluation_env_config, run_trials, summarise
+from pnp.training.rollout import run_trials, summarise
 
 log = logging.getLogger("pnp.deploy.world")
 HOLD = slice(0, 3)  # base velocity commands, zeroed when the low level holds
@@ -220,15 +218,13 @@ def start_robots(cfg: DictConfig, num_robots: int, worlds: int, clock: WorldCloc
 def build_world_env(cfg: DictConfig):
     """The student's evaluation env without its observation transforms (the world is the
     physics; observations are formed by each robot): (student config, env, seed)."""
-    ckpt = load_checkpoint(cfg.checkpoint)
-    if "distill" not in ckpt["cfg"]:
-        raise ValueError(f"checkpoint={cfg.checkpoint} is a teacher's: a deployment runs a student")
-    scfg, seed = distill_config(ckpt["cfg"]), resolve_seed(cfg.seed)
+    seed = resolve_seed(cfg.seed)
+    scfg, _, env = student_env(cfg.checkpoint, min(int(cfg.worlds), int(cfg.trials)), seed, "clean",
+                               backend=cfg.backend, low_level=cfg.low_level)
     if cfg.robots is not None and int(cfg.robots) != int(scfg.env.num_robots):
+        env.close()
         raise ValueError(f"robots={cfg.robots}, but {cfg.checkpoint} is a {scfg.env.num_robots}-robot student")
-    evaluation_env_config(scfg.env, min(int(cfg.worlds), int(cfg.trials)), backend=cfg.backend, low_level=cfg.low_level)
-    seed_everything(seed)
-    return scfg, make_student_env(scfg, seed, "clean"), seed
+    return scfg, env, seed
 
 
 def latency(arrivals: dict[int, list[float]]) -> dict:

@@ -33,7 +33,8 @@ from typing import Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.training.config import CurriculumConfig, RunConfig, drop_retired
+from pnp.training.config import CurriculumConfig, RunConfig
+from pnp.training.migration import drop_retired
 
 MOCAP_FIELDS = ["object.box_pos", "object.box_x_axis", "object.box_y_axis", "object.box_lin_vel",
                 "object.box_ang_vel", "object.handles"]

@@ -24,7 +24,7 @@ from torchrl.modules import ProbabilisticActor
 from pnp.task import HL_DT
 from pnp.task.observations import OBS_BLOCKS, OBS_FIELDS
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint, seed_everything
-from pnp.training.config import migrate
+from pnp.training.migration import migrate
 from pnp.distill.config import NoiseConfig, distill_config
 from pnp.training.keys import ACTION, LOC, LOG_PROB, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import AgentNet, ObsNorm, PopArt, fold_constant_inputs, make_models

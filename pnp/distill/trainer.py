@@ -19,7 +19,7 @@ from pnp.losses.distillation import DistillationPPOLoss
 from pnp.training.checkpoint import load_checkpoint, load_module
 from pnp.training.collect import desync_episodes
 from pnp.training.hooks import RunHook
-from pnp.training.config import changed_settings
+from pnp.training.migration import changed_settings
 from pnp.distill.config import distill_config
 from pnp.training.keys import OBS, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE
 from pnp.training.models import ObsNorm

@@ -20,7 +20,7 @@ from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.legs.backend import LeggedMujocoBackend
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
-from pnp.training.config import migrate
+from pnp.training.migration import migrate
 from pnp.studies.ll_quality import command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.provenance import check_clean, provenance, write_result

@@ -14,7 +14,7 @@ from typing import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-from pnp.training.config import changed_settings, migrate
+from pnp.training.migration import changed_settings, migrate
 from pnp.training.trainer import RESUMABLE
 
 # The rows' columns a comparison reads (curves, thresholds, Bendikas' sub-task ends).

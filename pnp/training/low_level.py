@@ -14,7 +14,7 @@ from pnp.legs.backend import LeggedMujocoBackend, LowLevelPolicy
 from pnp.envs.locomotion_env import leg_action_spec
 from pnp.legs.locomotion import LOCO_OBS_DIM, LegServo
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
-from pnp.training.config import migrate
+from pnp.training.migration import migrate
 from pnp.training.keys import ACTION, OBS, STAGE_ONE_HOT
 
 LOW_LEVELS = ("ideal", "learned")

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import windowed_mean
-from pnp.training.config import changed_settings, migrate
+from pnp.training.migration import changed_settings, migrate
 from pnp.training.plots import plot_pipeline
 from pnp.training.progress import PhasePlan, PipelineProgress
 from pnp.training.provenance import launch_record

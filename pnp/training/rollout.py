@@ -36,7 +36,8 @@ from pnp.task import ACTION_NAMES, OBS_FIELDS
 from pnp.task.terms import CONDITIONS, REWARD_TERMS, STAGES
 from pnp.training.checkpoint import load_checkpoint, seed_everything
 from pnp.training.collect import seconds
-from pnp.training.config import KinematicOptions, migrate
+from pnp.training.config import KinematicOptions
+from pnp.training.migration import migrate
 from pnp.training.keys import ACTION, STAGE
 from pnp.training.models import Models, ObsNorm, dist_from_params, fold_constant_inputs, make_models
 from pnp.training.recurrent import carry_state, init_state, recurrent_net

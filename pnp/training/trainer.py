@@ -29,7 +29,7 @@ from pnp.training.checkpoint import (
     seed_everything, set_rng_state,
 )
 from pnp.training.collect import collect, desync_episodes, episode_metrics
-from pnp.training.config import changed_settings, migrate
+from pnp.training.migration import changed_settings, migrate
 from pnp.training.keys import (
     ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, SCALE, VALUE, VALUE_TARGET,
 )

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from pnp.sim.box import DUAL_ROBOT_BOXES
 from pnp.task.terms import CONDITIONS
 from pnp.distill.config import register as register_distill
-from pnp.training.config import changed_settings, migrate
+from pnp.training.migration import changed_settings, migrate
 from pnp.training.pipeline import phase_config
 from pnp.training.rollout import load_policy
 from pnp.training.tasks import TASKS, kinematic_options, make_env, stage_graph

@@ -12,7 +12,7 @@ from hydra.errors import ConfigCompositionException
 
 from pnp.training.checkpoint import load_checkpoint
 from pnp.training.collect import collect
-from pnp.training.config import migrate
+from pnp.training.migration import migrate
 from pnp.distill.trainer import beta_at, distill
 from pnp.distill.config import register
 from pnp.training.keys import LOC, OBS, SCALE, STAGE_ONE_HOT, STUDENT_OBS, TEACHER_LOC, TEACHER_SCALE

@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from pnp.training.config import changed_settings, migrate
+from pnp.training.migration import changed_settings, migrate
 from pnp.distill.config import distill_config, register
 from pnp.training.pipeline import phase_config
 from pnp.training.provenance import launch_source

@@ -25,6 +25,7 @@ from tensordict.nn import InteractionType, set_interaction_type
 from pnp.analysis.benchmark_env import record_physics, replay_raw
 from pnp.training.choices import RECIPES_CONFIG
 from pnp.training.config import register
+from pnp.training.device import policy_step, training_device
 from pnp.training.ppo import ppo_update
 from pnp.training.provenance import provenance
 from pnp.training.trainer import make_training
@@ -34,6 +35,8 @@ from pnp.training.trainer import make_training
 def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1) -> dict:
     torch.manual_seed(int(cfg.seed))
     env, models, loss = make_training(cfg)
+    device = training_device(cfg.device)
+    loss.to(device)  # as the trainer: the networks and the update on cfg.device, the env on the CPU
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
     carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
@@ -48,7 +51,7 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
         with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
             for _ in range(steps):
                 t0 = time.perf_counter()
-                carried = models.actor(carried)
+                carried = policy_step(models.actor, carried, device, env.device)
                 t1 = time.perf_counter()
                 td, carried = env.step_and_maybe_reset(carried)
                 t["policy_s"] += t1 - t0
@@ -56,7 +59,7 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
                 out.append(td)
         torch.set_num_threads(update_threads)
         t0 = time.perf_counter()
-        ppo_update(torch.stack(out, -1), loss, optim, cfg)
+        ppo_update(torch.stack(out, -1).to(device), loss, optim, cfg)
         t["ppo_update_s"] = time.perf_counter() - t0
         if phys is not None:
             stop()
@@ -68,7 +71,7 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
     total = sum(times.values())
     raw = {} if phys is None else {"raw_physics_s": raw_s, "ratio_to_raw_physics": raw_s / total}
     return {"collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
-            "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
+            "device": str(device), "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
             "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
             "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
             "frames_per_s": steps * env.base_env.num_worlds / total, **raw}

@@ -259,6 +259,11 @@ class Teacher:
         self._label = TensorDictModule(models.actor_net, in_keys=[OBS, STAGE_ONE_HOT],
                                        out_keys=[TEACHER_LOC, TEACHER_SCALE])
 
+    def to(self, device) -> Teacher:
+        """The teacher where the student's update runs (it labels the batch there)."""
+        self.actor.to(device)
+        return self
+
     @torch.no_grad()
     def label(self, td: TensorDictBase) -> TensorDictBase:
         return self._label(td)

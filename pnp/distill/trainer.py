@@ -75,6 +75,9 @@ class TeacherLabels(RunHook):
     def __init__(self, teacher: Teacher, kl: DictConfig):
         self.teacher, self.kl = teacher, kl
 
+    def on_ready(self, runner) -> None:
+        self.teacher.to(runner.device)
+
     def before_collect(self, runner) -> None:
         runner.loss.beta = beta_at(self.kl, runner.counters["iteration"])
 

@@ -10,6 +10,7 @@ from tensordict.nn import InteractionType, ProbabilisticTensorDictSequential, se
 from torchrl.envs import TransformedEnv
 
 from pnp.task import HL_DT
+from pnp.training.device import module_device, policy_step
 from pnp.training.models import dist_from_params
 from pnp.training.keys import ACTION, EPISODE_STAGE, PEAK, REWARD, ROLL_IN, STAGE, STAGE_ONE_HOT
 from pnp.training.recurrent import carry_state, recurrent_net
@@ -55,13 +56,15 @@ def collect(env: TransformedEnv, policy: ProbabilisticTensorDictSequential, carr
     The loop the Collector runs (step_and_maybe_reset), kept here because its carried td
     is the one piece of state a bit-for-bit resume needs and ``Collector.state_dict`` does
     not hold it (its constructor even resets the env). With ``roll_in``, steps inside an
-    episode's roll-in take the mean action and are flagged ``ROLL_IN``.
+    episode's roll-in take the mean action and are flagged ``ROLL_IN``. The carried td stays
+    on the env's device; the batch is returned on the policy's (where the update runs).
     """
     out, recurrent = [], recurrent_net(policy) is not None
+    device = module_device(policy)
     # Sampled actions: ProbabilisticActor's default interaction type is deterministic.
     with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
         for _ in range(steps):
-            carried = policy(carried)
+            carried = policy_step(policy, carried, device, env.device)
             if roll_in is not None:
                 count = carried["step_count"].reshape(-1)  # steps already taken in the episode
                 roll_in.begin(count == 0)
@@ -75,7 +78,8 @@ def collect(env: TransformedEnv, policy: ProbabilisticTensorDictSequential, carr
             out.append(td)
             if recurrent:
                 carry_state(td, carried)
-    return torch.stack(out, -1), carried
+    batch = torch.stack(out, -1)
+    return (batch if batch.device == device else batch.to(device)), carried  # where the update runs
 
 
 def desync_episodes(carried: TensorDictBase, max_steps: int | None) -> TensorDictBase:

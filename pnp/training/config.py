@@ -296,6 +296,9 @@ class RunConfig:
     collect: CollectConfig = field(default_factory=CollectConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     threads: ThreadsConfig = field(default_factory=ThreadsConfig)
+    # Where the networks, the loss and the PPO update run: cpu | cuda | cuda:<index>. The envs
+    # stay on the CPU; each step's tensordict crosses over (pnp.training.device).
+    device: str = "cpu"
 
 
 @dataclass

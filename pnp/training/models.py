@@ -46,7 +46,7 @@ class ObsNorm(nn.Module):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
-        x = x.reshape(-1, x.shape[-1]).double()
+        x = x.reshape(-1, x.shape[-1]).to(self.mean.device).double()  # a CPU step into a GPU run's statistics
         n, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
         total = self.count + n
         delta = mean - self.mean
@@ -207,7 +207,7 @@ class PopArt(nn.Module):
     @torch.no_grad()
     def update(self, targets: torch.Tensor) -> None:
         first = bool(self.stats.debiasing_term == 0)  # nothing to preserve yet
-        zero = torch.zeros(self.width)
+        zero = torch.zeros(self.width, device=self.weight.device)
         m0, s0 = self.stats.denormalize(zero), self.stats.scale()
         self.stats.update(targets.reshape(-1, self.width))
         if not first:

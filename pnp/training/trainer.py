@@ -29,6 +29,7 @@ from pnp.training.checkpoint import (
     seed_everything, set_rng_state,
 )
 from pnp.training.collect import collect, desync_episodes, episode_metrics
+from pnp.training.device import training_device
 from pnp.training.migration import changed_settings, migrate
 from pnp.training.keys import (
     ACTION, ADVANTAGE, LOC, LOG_PROB, OBS, REWARD, SCALE, VALUE, VALUE_TARGET,
@@ -45,9 +46,9 @@ from pnp.training.tasks import make_env, schedule_of
 # Keys a resumed run takes from the command line; everything else comes from the checkpoint.
 # env.nthread too: MuJoCo steps each world on its own, so the thread count does not change
 # the numbers, and a run may move to a machine with fewer cores (torch's threads likewise,
-# though its sums may round differently); the logger's name names only.
+# though its sums may round differently, and the device likewise); the logger's name names only.
 RESUME_OVERRIDES = ("total_iterations", "max_wall_hours", "checkpoint_every_min", "snapshot_every", "progress",
-                    "env.nthread", "threads.collect", "threads.update", "logger.exp_name")
+                    "env.nthread", "threads.collect", "threads.update", "device", "logger.exp_name")
 
 
 def make_loss(loss_cfg: DictConfig, models, loss_cls: type[PopArtMAPPOLoss] = PopArtMAPPOLoss,
@@ -191,7 +192,9 @@ class Trainer:
         self.threads = torch_threads(cfg.threads)
         tqdm.write(f"torch threads: {self.threads['collect']} collecting, {self.threads['update']} in the update "
               f"({available_cores()} cores available; cfg.threads)")
+        self.device = training_device(cfg.device)
         self.build()
+        self.to_device()
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.optim.lr))
         self.counters = {"iteration": 0, "frames": 0, "wall_s": 0.0}
         share = float(cfg.collect.roll_in_share)
@@ -214,6 +217,11 @@ class Trainer:
     def build(self) -> None:
         """``env``, ``models`` and ``loss`` of the run."""
         self.env, self.models, self.loss = make_training(self.cfg)
+
+    def to_device(self) -> None:
+        """The networks to ``cfg.device``, before the optimiser takes their parameters: the
+        loss holds the actor and the critic (PopArt and ObsNorm inside them) as they are."""
+        self.loss.to(self.device)
 
     def method_hooks(self) -> list[RunHook]:
         return method_hooks(self.cfg, self)

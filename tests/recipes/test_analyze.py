@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 
 import pytest
 import torch
@@ -17,6 +18,7 @@ from pnp.analysis import box_contacts
 from pnp.analysis import grasp_losses
 from pnp.analysis import knock_overs
 from pnp.analysis import profile_iteration
+from pnp.analysis import scaling
 from pnp.analysis import swap_critic
 
 
@@ -100,6 +102,22 @@ def test_profile_iteration_compares_thread_splits(tmp_path):
     assert [(r["collect_threads"], r["update_threads"]) for r in out["runs"]] == [(1, 2)]
     with pytest.raises(ValueError, match="threads='1-2'"):
         profile_iteration.main(["backend=kinematic", "threads=1-2"])
+
+
+def test_scaling_profiles_each_thread_count_against_the_first(tmp_path):
+    tiny = ["env.num_worlds=4", "collect.frames_per_batch=16", "collect.minibatch_size=8", "model.actor_cells=[16]",
+            "model.critic_cells=[16]"]
+    out = scaling.main(["backends=kinematic", "threads=1,2", "iterations=1", f"out={tmp_path / 's.json'}", *tiny])
+    rows = out["rows"]
+    assert [(r["backend"], r["device"], r["threads"], r["update_threads"]) for r in rows] == [
+        ("kinematic", "cpu", 1, 1), ("kinematic", "cpu", 2, 2)]
+    assert rows[0]["frames_per_s_ratio_to_first"] == 1.0 and rows[1]["frames_per_s_ratio_to_first"] > 0
+    assert "env.nthread=2" in rows[1]["overrides"] and rows[1]["command"].endswith(shlex.join(tiny))
+    assert json.loads((tmp_path / "s.json").read_text())["rows"][1]["threads"] == 2
+    with pytest.raises(ValueError, match="threads='0,2'"):
+        scaling.main(["threads=0,2"])
+    with pytest.raises(ValueError, match=r"\['gpu'\] not among"):
+        scaling.main(["backends=gpu"])
 
 
 def test_profile_iteration_times_the_same_physics_raw_on_mujoco(tmp_path):

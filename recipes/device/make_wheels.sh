@@ -31,7 +31,7 @@ PY
 for spec in mujoco==3.17.0 dm_control==1.0.50 torchrl==0.14.1 tensordict==0.14.3 dm_tree==0.1.10 \
     hydra_core==1.3.8 antlr4_python3_runtime==4.9.3 orjson==3.13.0 omegaconf==2.3.1 pytorch_kinematics==0.10.0 \
     arm_pytorch_utilities==0.5.0 importlib_metadata==10.2.0 dm_env==1.6 hoptorch==0.1.4 pyvers==0.2.3 \
-    pytorch_seed==0.2.0; do
+    pytorch_seed==0.2.0 pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.4 pygments==2.21.0; do
   compgen -G "$DEST/${spec/==/-}-*.whl" >/dev/null && continue  # already there
   rm -rf "$TMP"/*
   if [[ $spec == antlr4* ]]; then  # sdist only: build its (pure python) wheel here

@@ -10,16 +10,28 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError
 
 from pnp.training.provenance import provenance
 from pnp.training.rollout import load_policy, run_trials, summarise
 
 
-def settings(argv: list[str], defaults: dict, usage: str) -> DictConfig:
-    """``defaults`` overridden by ``argv``; without a ``checkpoint`` the script's ``usage`` is shown."""
-    cfg = OmegaConf.merge(OmegaConf.create(defaults), OmegaConf.from_dotlist(argv))
-    if cfg.checkpoint is None:
-        raise SystemExit(usage)
+def settings(argv: list[str], defaults: dict, usage: str, required: tuple[str, ...] = ("checkpoint",)) -> DictConfig:
+    """``defaults`` overridden by ``argv`` (``key=value``); a key the script does not declare is
+    refused by name (a typo would otherwise run the defaults), except inside a group declared
+    as an empty dict (free-form env overrides). Without the ``required`` keys, ``usage`` is shown."""
+    base = OmegaConf.create(defaults)
+    OmegaConf.set_struct(base, True)
+    for key, value in defaults.items():
+        if value == {}:
+            OmegaConf.set_struct(base[key], False)
+    try:
+        cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(argv))
+    except ConfigKeyError as e:
+        raise ValueError(f"unknown setting {e.full_key!r}: this script takes {sorted(defaults)}") from None
+    missing = [k for k in required if cfg[k] is None]
+    if missing:
+        raise SystemExit(f"set {missing} (key=value)\n{usage}")
     return cfg
 
 

@@ -22,10 +22,10 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 
+from pnp.analysis.analysis_cli import settings
 from pnp.task import OBS_BLOCKS, OBS_FIELDS
 from pnp.task.terms import STAGES
 from pnp.training.keys import LOC, OBS, SCALE, STAGE, STAGE_ONE_HOT
@@ -208,9 +208,7 @@ def plot(result: dict, out: Path) -> list[Path]:
 
 
 def main(argv: list[str]) -> dict:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    if cfg.checkpoint is None:
-        raise SystemExit(__doc__)
+    cfg = settings(argv, DEFAULTS, __doc__)
     out = Path(cfg.out)
     if cfg.replot:
         result = json.loads(out.with_suffix(".json").read_text())

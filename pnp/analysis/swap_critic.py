@@ -11,10 +11,9 @@ optimiser's moments stay ``actor_from``'s: Adam's first moment forgets them with
 """
 from __future__ import annotations
 
-
 import torch
-from omegaconf import OmegaConf
 
+from pnp.analysis.analysis_cli import settings
 from pnp.training.models import ObsNorm
 
 _NORM, _W, _B = "module.obs_norm.", "module.mlp.params.0.weight", "module.mlp.params.0.bias"
@@ -46,10 +45,7 @@ def reexpress_critic(critic: dict, stats_from: dict) -> dict:
 
 
 def main(argv: list[str]) -> dict:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    missing = [k for k, v in cfg.items() if v is None]
-    if missing:
-        raise SystemExit(f"swap_critic.py: set {missing} (key=value); see the module docstring")
+    cfg = settings(argv, DEFAULTS, __doc__, required=tuple(DEFAULTS))
     a = torch.load(cfg.actor_from, weights_only=False, map_location="cpu")
     b = torch.load(cfg.critic_from, weights_only=False, map_location="cpu")
     for name, ckpt in (("actor_from", a), ("critic_from", b)):

@@ -13,11 +13,10 @@ import json
 import math
 from pathlib import Path
 
-from omegaconf import OmegaConf
 
 from pnp.training.collect import windowed_mean
 
-from pnp.analysis.analysis_cli import save
+from pnp.analysis.analysis_cli import save, settings
 
 DEFAULTS = {"metrics": None, "window": 100, "out": None}
 USAGE = __doc__
@@ -68,9 +67,7 @@ def table(summaries: list[dict]) -> str:
 
 
 def main(argv: list[str]) -> list[dict]:
-    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
-    if cfg.metrics is None:
-        raise SystemExit(USAGE)
+    cfg = settings(argv, DEFAULTS, USAGE, required=("metrics",))
     path = Path(cfg.metrics)
     if not path.is_file():
         raise SystemExit(f"metrics={path}: no such file (a phase's metrics.jsonl or a run's pipeline_metrics.jsonl)")

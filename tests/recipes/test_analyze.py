@@ -184,6 +184,18 @@ def test_a_swapped_critic_computes_what_it_computed_under_its_own_statistics():
     assert torch.equal(swapped["module.obs_norm.var"], other["module.obs_norm.var"])
 
 
+def test_an_analysis_refuses_a_setting_it_does_not_take_by_name():
+    from pnp.analysis import training_curve
+    from pnp.analysis.analysis_cli import settings
+
+    with pytest.raises(ValueError, match=r"unknown setting 'windw': this script takes \['metrics', 'out', 'window'\]"):
+        training_curve.main(["metrics=m.jsonl", "windw=3"])
+    with pytest.raises(SystemExit, match=r"set \['checkpoint'\]"):
+        settings(["trials=3"], {"checkpoint": None, "trials": 1}, "usage")
+    free = settings(["checkpoint=c.pt", "env.num_worlds=3"], {"checkpoint": None, "env": {}}, "usage")
+    assert free.env.num_worlds == 3  # an empty group takes any env override
+
+
 def test_training_curve_weights_by_episodes_and_stops_at_phases(tmp_path, capsys):
     from pnp.analysis import training_curve
     rows = [{"phase": p, "iteration": i, "frames": 10 * i, "episodes": e, "success_rate": s,

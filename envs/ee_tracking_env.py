@@ -28,7 +28,8 @@ from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from pnp.sim.backend import Backend
 from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.task.ee_tracking import (
-    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, TRACK_RULES, default_reward, observations,
+    EE_CONDITIONS, EE_OBS_BLOCKS, EE_REWARD_TERMS, EPISODE_S, N_POINTS, POINT_RING, TRACK_RULES, TRACK_SIGMA,
+    default_reward, observations,
     point_distances, reward_terms, sample_ee_layout, stage_conditions,
 )
 from pnp.envs.pnp_env import RobotEnvBase, _torch_single_threaded
@@ -40,18 +41,26 @@ _NEUTRAL = torch.tensor([0.0, 0.0, 0.0, 0.75, 0.0, -0.30, 0.0, 0.0])  # as PnPEn
 
 class EETrackingEnv(RobotEnvBase):
     """Four-point EE tracking on ``backend`` "mujoco" or "kinematic"; episodes of
-    ``max_episode_steps`` HL steps (default 200 = 20 s)."""
+    ``max_episode_steps`` HL steps (default 200 = 20 s). ``track_rule``, ``track_sigma`` and
+    ``point_ring``: the task's reward rule, kernel lengths and point distances
+    (``pnp.task.ee_tracking``)."""
 
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
                  nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
-                 track_rule: str = "gated", device="cpu"):
+                 track_rule: str = "gated", track_sigma: tuple[float, float] = TRACK_SIGMA,
+                 point_ring: tuple[float, float] = POINT_RING, device="cpu"):
+        if track_rule not in TRACK_RULES:
+            raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
+        if len(track_sigma) != 2 or min(track_sigma) <= 0:
+            raise ValueError(f"track_sigma must be two positive lengths (m), got {list(track_sigma)}")
+        if len(point_ring) != 2 or not 0 < point_ring[0] <= point_ring[1]:
+            raise ValueError(f"point_ring must be [lo, hi] in m with 0 < lo <= hi, got {list(point_ring)}")
         self._init_worlds(num_worlds, 1, max_episode_steps, device)
         self.backend = self._make_backend(backend, nthread, SINGLE_ROBOT_BOXES[0])
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
-        if track_rule not in TRACK_RULES:
-            raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
         self.track_rule = track_rule  # see pnp.task.ee_tracking.TRACK_RULES
+        self.track_sigma, self.point_ring = tuple(map(float, track_sigma)), tuple(map(float, point_ring))
         self._make_specs()
         N = num_worlds
         self._goal, self._init_goal_dist = torch.zeros(N, 2), torch.ones(N)  # unused PnPState fields
@@ -86,7 +95,7 @@ class EETrackingEnv(RobotEnvBase):
 
     # --- EnvBase hooks -------------------------------------------------------------------
     def _reset_worlds(self, ids: torch.Tensor):
-        layout, points = sample_ee_layout(self._rng, len(ids))
+        layout, points = sample_ee_layout(self._rng, len(ids), ring=self.point_ring)
         self.backend.reset(ids, layout)
         self._points[ids] = points
         self._touched[ids] = 0
@@ -123,7 +132,7 @@ class EETrackingEnv(RobotEnvBase):
         if advance is not None:  # the forward-only graph's rule: only the next point's touch counts
             nxt = self._touched.clamp(max=N_POINTS - 1).unsqueeze(-1)
             self._touched += (cond[:, 0].gather(-1, nxt).squeeze(-1) & (self._touched < N_POINTS) & advance).long()
-        terms = reward_terms(s, dist, action, last_action, self._touched, self.track_rule)
+        terms = reward_terms(s, dist, action, last_action, self._touched, self.track_rule, self.track_sigma)
         blocks = observations(s, self._points, dist, action, frame)
         agents = dict(blocks, observation=torch.cat([blocks[k] for k in EE_OBS_BLOCKS], -1), reward_terms=terms,
                       stage_conditions=cond, reward=default_reward(terms),

@@ -94,8 +94,10 @@ def ee_reward_config() -> dict:
     )
 
 
-def sample_ee_layout(rng: torch.Generator, m: int, tries: int = 16) -> tuple[Layout, torch.Tensor]:
-    """Robot at the origin with a random heading, box parked; points [m, P, 3] (world).
+def sample_ee_layout(rng: torch.Generator, m: int, tries: int = 16,
+                     ring: tuple[float, float] = POINT_RING) -> tuple[Layout, torch.Tensor]:
+    """Robot at the origin with a random heading, box parked; points [m, P, 3] (world), each
+    ``ring`` (m) from the start horizontally.
 
     Rejection sampling vectorised over ``tries`` candidates per point: the first candidate
     at least ``MIN_GAP`` from the previous point (the last one if none is: rare and legal).
@@ -106,7 +108,7 @@ def sample_ee_layout(rng: torch.Generator, m: int, tries: int = 16) -> tuple[Lay
                         torch.full((m,), EE_START[2] + STANDING_HEIGHT)], -1)
     points = []
     for _ in range(N_POINTS):
-        xy = _ring(rng, (m, tries), POINT_RING)
+        xy = _ring(rng, (m, tries), ring)
         z = POINT_HEIGHT[0] + (POINT_HEIGHT[1] - POINT_HEIGHT[0]) * torch.rand(m, tries, 1, generator=rng)
         cand = torch.cat([xy, z], -1)
         ok = (cand - prev[:, None]).norm(dim=-1) >= MIN_GAP
@@ -135,15 +137,16 @@ def stage_conditions(dist: torch.Tensor) -> torch.Tensor:
 
 
 def reward_terms(s: PnPState, dist: torch.Tensor, action: torch.Tensor, last_action: torch.Tensor,
-                 touched: torch.Tensor | None = None, rule: str = "plain") -> torch.Tensor:
+                 touched: torch.Tensor | None = None, rule: str = "plain",
+                 sigma: tuple[float, float] = TRACK_SIGMA) -> torch.Tensor:
     """Float [N, R, len(EE_REWARD_TERMS)]; the fixed terms as in ``pnp.task.reward_terms``.
 
     ``touched`` [N]: points touched so far, for ``rule`` "saturated" or "gated" (see
-    ``TRACK_RULES``).
+    ``TRACK_RULES``); ``sigma``: the coarse and fine kernels' lengths (m).
     """
     if rule not in TRACK_RULES:
         raise ValueError(f"track rule must be one of {TRACK_RULES}, got {rule!r}")
-    track = 0.5 * (torch.exp(dist * (-1.0 / TRACK_SIGMA[0])) + torch.exp(dist * (-1.0 / TRACK_SIGMA[1])))
+    track = 0.5 * (torch.exp(dist * (-1.0 / sigma[0])) + torch.exp(dist * (-1.0 / sigma[1])))
     if rule != "plain":
         touched = touched[:, None, None]  # [N, 1, 1] against point indices [P]
         track = torch.where(_POINT_INDEX < touched, 1.0, track)

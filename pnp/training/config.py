@@ -18,6 +18,7 @@ from pnp.training.choices import (
 from pnp.legs.locomotion import ACTION_SCALE, TRACKING_SIGMA
 from pnp.sim.robot import LEG_KD, LEG_KP
 from pnp.task import ACTION_HIGH, ACTION_LOW, GRASP_DIST
+from pnp.task.ee_tracking import POINT_RING, TRACK_SIGMA
 
 
 @dataclass
@@ -63,6 +64,15 @@ class LocomotionConfig:
 
 
 @dataclass
+class EETrackingConfig:
+    """The 4-point EE-tracking ablation's task (env.task=ee_tracking only; pnp.task.ee_tracking)."""
+
+    track_rule: str = "gated"  # plain | saturated | gated: how point k's term depends on the points touched
+    track_sigma: List[float] = field(default_factory=lambda: list(TRACK_SIGMA))  # m, the coarse and fine kernels
+    point_ring: List[float] = field(default_factory=lambda: list(POINT_RING))  # m, points' distance from the start
+
+
+@dataclass
 class EnvConfig:
     task: str = "pnp"  # pnp | ee_tracking (the 4-point ablation, one robot) | locomotion (the leg policy)
     backend: Backend = Backend.mujoco
@@ -82,6 +92,7 @@ class EnvConfig:
     # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
     box_mass: Optional[List[float]] = None
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
+    ee_tracking: EETrackingConfig = field(default_factory=EETrackingConfig)  # env.task=ee_tracking only
     # ideal: planar base, IK arm (pnp.sim.executor). learned: legs walked by a locomotion policy
     # (pnp.legs.backend; MuJoCo only) from low_level_checkpoint, a task=locomotion run.
     low_level: LowLevel = LowLevel.ideal

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import Compose, EnvBase, RewardClipping, StepCounter, TransformedEnv
 
 from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
@@ -15,7 +15,7 @@ from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.envs.pnp_env import PnPEnv
 from pnp.legs.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.task.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
-from pnp.training.config import KinematicOptions
+from pnp.training.config import EETrackingConfig, KinematicOptions
 from pnp.training.keys import REWARD, STAGE_ONE_HOT
 from pnp.training.low_level import LOW_LEVELS, learned_backend
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
@@ -51,8 +51,10 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
         raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
     kinematic_options(env_cfg)  # refuses kinematic options on MuJoCo here too
     _ideal_only(env_cfg)
+    task = env_cfg.ee_tracking
     return EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=env_cfg.backend, seed=int(seed),
-                         nthread=env_cfg.nthread)
+                         nthread=env_cfg.nthread, track_rule=str(task.track_rule), track_sigma=tuple(task.track_sigma),
+                         point_ring=tuple(task.point_ring))
 
 
 def _locomotion_env(env_cfg: DictConfig, seed: int) -> EnvBase:
@@ -97,6 +99,9 @@ def _ideal_only(env_cfg: DictConfig) -> None:
 def _task(env_cfg: DictConfig) -> tuple:
     if env_cfg.task not in TASKS:
         raise ValueError(f"env.task must be one of {sorted(TASKS)}, got {env_cfg.task!r}")
+    own = OmegaConf.to_container(env_cfg.ee_tracking)
+    if env_cfg.task != "ee_tracking" and own != OmegaConf.to_container(OmegaConf.structured(EETrackingConfig)):
+        raise ValueError(f"env.ee_tracking={own} sets the EE-tracking task; this run's env.task is {env_cfg.task!r}")
     return TASKS[env_cfg.task]
 
 

@@ -271,3 +271,30 @@ def test_track_rules(rule):
     assert (track_3 == 0.0).all() == (rule == "gated") and (track_3 > 0).all() == (rule != "gated")
     with pytest.raises(ValueError, match="track_rule must be one of"):
         EETrackingEnv(num_worlds=1, backend="kinematic", track_rule="sometimes")
+
+
+def test_the_task_settings_reach_the_env_and_bad_ones_are_named():
+    """env.ee_tracking: points within point_ring of the start; a longer coarse kernel pays
+    more for the same distance; bad values and a non-EE task's settings are refused."""
+    from omegaconf import OmegaConf
+
+    from pnp.training.config import EnvConfig
+    from pnp.training.tasks import _ee_tracking_env, _task
+
+    cfg = OmegaConf.structured(EnvConfig)
+    cfg.task, cfg.backend, cfg.num_worlds = "ee_tracking", "kinematic", 64
+    cfg.ee_tracking.point_ring, cfg.ee_tracking.track_sigma = [1.0, 1.2], [3.0, 0.1]
+    env = _ee_tracking_env(cfg, seed=0)
+    horizontal = env._points[..., :2].norm(dim=-1)  # the robot starts at the origin
+    assert ((horizontal >= 1.0 - 1e-5) & (horizontal <= 1.2 + 1e-5)).all()
+    wide = env._observe(_neutral(env), _neutral(env))["agents", "reward_terms"][:, 0, 0]
+    narrow = EETrackingEnv(num_worlds=64, backend="kinematic", point_ring=(1.0, 1.2), seed=0)
+    narrow._points = env._points.clone()
+    assert (wide > narrow._observe(_neutral(env), _neutral(env))["agents", "reward_terms"][:, 0, 0]).all()
+    with pytest.raises(ValueError, match=r"track_sigma must be two positive lengths \(m\), got \[0.0, 0.1\]"):
+        EETrackingEnv(num_worlds=1, backend="kinematic", track_sigma=(0.0, 0.1))
+    with pytest.raises(ValueError, match=r"point_ring must be \[lo, hi\] in m with 0 < lo <= hi, got \[2.0, 1.0\]"):
+        EETrackingEnv(num_worlds=1, backend="kinematic", point_ring=(2.0, 1.0))
+    cfg.task = "pnp"
+    with pytest.raises(ValueError, match=r"env.ee_tracking=.* sets the EE-tracking task; this run's env.task is 'pnp'"):
+        _task(cfg)

@@ -18,12 +18,12 @@ from pnp.training.rollout import load_policy, run_trials, summarise
 
 def settings(argv: list[str], defaults: dict, usage: str, required: tuple[str, ...] = ("checkpoint",)) -> DictConfig:
     """``defaults`` overridden by ``argv`` (``key=value``); a key the script does not declare is
-    refused by name (a typo would otherwise run the defaults), except inside a group declared
-    as an empty dict (free-form env overrides). Without the ``required`` keys, ``usage`` is shown."""
+    refused by name (a typo would otherwise run the defaults), except inside a dict-valued group
+    (env overrides: the run's config schema checks those). Without the ``required`` keys, ``usage`` is shown."""
     base = OmegaConf.create(defaults)
     OmegaConf.set_struct(base, True)
     for key, value in defaults.items():
-        if value == {}:
+        if isinstance(value, dict):
             OmegaConf.set_struct(base[key], False)
     try:
         cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(argv))

@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[sim,train,test,deploy,cluster]"
 	touch $(STAMP)
 
-.PHONY: venv test test-all train benchmark render-deps
+.PHONY: venv test test-all train train-seeds benchmark render-deps
 venv: $(STAMP)
 
 test: $(STAMP)
@@ -30,6 +30,17 @@ train: $(STAMP)
 	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline out_dir=$(RUN) $(if $(SEED),seed=$(SEED)) $(ARGS)
 	$(PY) recipes/select_checkpoint.py run=$(RUN)
 	$(PY) recipes/evaluate.py checkpoint=$(RUN) selected=true seed=reporting out=$(RUN)/eval_single_pnp.json
+
+# make train over seeds, one after another (SEEDS="0 1 2"), each from its own empty folder
+# runs/seed_<k>; a seed whose evaluation exists is skipped, so re-running resumes the study.
+# Then the seeds gathered: mean, worst and spread (recipes/seed_study.py).
+SEEDS ?= 0 1 2
+comma := ,
+empty :=
+space := $(empty) $(empty)
+train-seeds: $(STAMP)
+	for k in $(SEEDS); do test -f runs/seed_$$k/eval_single_pnp.json || $(MAKE) train SEED=$$k RUN=runs/seed_$$k || exit 1; done
+	$(PY) recipes/seed_study.py runs=[$(subst $(space),$(comma),$(addprefix runs/seed_,$(strip $(SEEDS))))] out=runs/seed_study.json
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py

@@ -40,7 +40,7 @@ empty :=
 space := $(empty) $(empty)
 train-seeds: $(STAMP)
 	for k in $(SEEDS); do test -f runs/seed_$$k/eval_single_pnp.json || $(MAKE) train SEED=$$k RUN=runs/seed_$$k || exit 1; done
-	$(PY) recipes/seed_study.py runs=[$(subst $(space),$(comma),$(addprefix runs/seed_,$(strip $(SEEDS))))] out=runs/seed_study.json
+	$(PY) recipes/seed_study.py runs=[$(subst $(space),$(comma),$(addprefix runs/seed_,$(strip $(SEEDS))))]
 
 benchmark: $(STAMP)
 	$(PY) recipes/benchmark.py

@@ -194,6 +194,9 @@ def test_an_analysis_refuses_a_setting_it_does_not_take_by_name():
         settings(["trials=3"], {"checkpoint": None, "trials": 1}, "usage")
     free = settings(["checkpoint=c.pt", "env.num_worlds=3"], {"checkpoint": None, "env": {}}, "usage")
     assert free.env.num_worlds == 3  # an empty group takes any env override
+    grouped = settings(["checkpoint=c.pt", "env.max_episode_steps=50"], {"checkpoint": None, "env": {"num_worlds": 8}},
+                       "usage")
+    assert (grouped.env.num_worlds, grouped.env.max_episode_steps) == (8, 50)  # a group with defaults too
 
 
 def test_training_curve_weights_by_episodes_and_stops_at_phases(tmp_path, capsys):

@@ -76,9 +76,10 @@ def main(argv: list[str]) -> dict:
                    f"{row['frames_per_s']:.0f} frames/s (x{row['frames_per_s_ratio_to_first']:.2f} of "
                    f"{first['device']} {first['threads']} threads)")
         rows.append(row)
-    result = {"rows": rows, **provenance()}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
+        # Written after every row: a device lease that ends mid-grid still returns the rows it measured.
+        result = {"rows": rows, "rows_planned": len(grid), **provenance()}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=1) + "\n")
     return result
 
 

@@ -29,8 +29,8 @@ def _tree() -> tuple[str, list[str]]:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
         status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout
         return out.stdout.strip(), [x[3:].strip() for x in status.splitlines() if _counts_as_dirty(x)]
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown", []
+    except (OSError, subprocess.CalledProcessError):  # a copy without .git (a lent GPU machine) says its commit
+        return os.environ.get("PNP_COMMIT", "unknown"), []
 
 
 def commit() -> str:

@@ -2,7 +2,8 @@
 # Device-side check of issue 66 on a lent GPU machine (16 cores): the device tests with their CUDA
 # case, then recipes/analyze/scaling.py over 1, 4, 8, 16 threads on cpu and cuda (~5 min).
 # Needs the wheels of recipes/device/make_wheels.sh in .whl/; `run` tool call:
-#   command="bash recipes/device/scaling.sh", carry=[".whl"], timeout_s=600
+#   command="PNP_COMMIT=<short hash sent> bash recipes/device/scaling.sh", carry=[".whl"], timeout_s=600
+# The tracked tree must stay under 64 MiB with the wheels: untrack the checkpoints for the call.
 # Back in files_at: scaling.json (-> results/scaling_h200.json) and tests.log.
 set -uo pipefail
 cd "$(dirname "$0")/../.."

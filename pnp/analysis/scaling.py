@@ -80,7 +80,27 @@ def main(argv: list[str]) -> dict:
         result = {"rows": rows, "rows_planned": len(grid), **provenance()}
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1) + "\n")
+    plot(rows, out.with_suffix(".png"))
     return result
+
+
+def plot(rows: list[dict], path: Path, title: str = "") -> None:
+    """Frames/s against threads, one line per backend and device."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in sorted({(r["backend"], r["device"]) for r in rows}):
+        mine = sorted((r["threads"], r["frames_per_s"]) for r in rows if (r["backend"], r["device"]) == key)
+        ax.plot(*zip(*mine), marker="o", label=f"{key[0]}, update on {key[1]}")
+    ax.set(xlabel="threads (MuJoCo pool and torch update)", ylabel="training frames/s", title=title)
+    ax.set_xscale("log", base=2)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 register()

@@ -114,6 +114,7 @@ def test_scaling_profiles_each_thread_count_against_the_first(tmp_path):
     assert rows[0]["frames_per_s_ratio_to_first"] == 1.0 and rows[1]["frames_per_s_ratio_to_first"] > 0
     assert "env.nthread=2" in rows[1]["overrides"] and rows[1]["command"].endswith(shlex.join(tiny))
     assert json.loads((tmp_path / "s.json").read_text())["rows"][1]["threads"] == 2
+    assert (tmp_path / "s.png").stat().st_size > 0
     with pytest.raises(ValueError, match="threads='0,2'"):
         scaling.main(["threads=0,2"])
     with pytest.raises(ValueError, match=r"\['gpu'\] not among"):

@@ -16,11 +16,13 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.sim.backend import MujocoBackend
-from pnp.sim.box import SINGLE_ROBOT_BOXES
+from pnp.envs.pnp_env import PnPEnv
+from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.legs.backend import LeggedMujocoBackend
 from pnp.training.checkpoint import load_checkpoint, resolve_checkpoint
 from pnp.training.migration import migrate
+from pnp.studies.ll_carry import dual_carry
 from pnp.studies.ll_quality import command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking
 from pnp.training.low_level import load_locomotion_policy
 from pnp.training.provenance import check_clean, provenance, write_result
@@ -56,8 +58,22 @@ def table_md(r: dict) -> str:
              f"Saturation (share of leg joint-steps; velocity grid / pushes): torque at the limit "
              f"{100 * v['torque_saturation_rate']:.2f} % / {100 * p['torque_saturation_rate']:.2f} %, "
              f"within 0.02 rad of a range end {100 * v['joint_limit_rate']:.2f} % / {100 * p['joint_limit_rate']:.2f} %.",
-             "", f"Leg policy `{r['checkpoint']}` (iteration {r['checkpoint_iteration']}), seed {r['seed']}."]
+             "", *carry_md(r["dual_carry"]), "", f"Leg policy `{r['checkpoint']}` (iteration {r['checkpoint_iteration']}), seed {r['seed']}."]
     return "\n".join(rows) + "\n"
+
+
+def carry_md(both: dict) -> list[str]:
+    rows = ["| Two robots carrying | Carried | Falls while carrying | Grasps lost | EE error (cm, mean / p90) "
+            "| Lowest trunk (m, mean) | Gripper spacing drift (cm, mean / max) | Success |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, c in both.items():
+        e, t, d = c["ee_error_m"], c["trunk_height_min_m"], c["spacing_drift_m"]
+        low = "-" if t["mean"] is None else f"{t['mean']:.3f}"
+        rows.append(f"| {name} | {c['carried']}/{c['episodes']} | {c['falls_while_carrying']} | "
+                    f"{c['grasps_lost_while_carrying']} | {_cm(e['mean'])} / {_cm(e['p90'])} | "
+                    f"{low} | "
+                    f"{_cm(d['mean'])} / {_cm(d['max'])} | {c['success']}/{c['episodes']} |")
+    return rows
 
 
 def measure(cfg: DictConfig) -> dict:
@@ -95,7 +111,14 @@ def measure(cfg: DictConfig) -> dict:
             finally:
                 backend.close()
         tracking[", ".join(f"{x:+.2f}" for x in cmd)] = both
-    result = {"velocity_tracking": velocity, "ee_tracking": tracking, "pushes": pushes,
+    c = cfg.carry
+    mass = (float(c.box_mass_kg),) * 2
+    pair = {"ideal": lambda n: PnPEnv(n, 2, "mujoco", seed=seed, nthread=nthread, paired_trials=True, box_mass=mass),
+            "learned": lambda n: PnPEnv(n, 2, LeggedMujocoBackend(n, 2, DUAL_ROBOT_BOXES[0], policy, nthread=nthread,
+                                                                  servo=policy.servo),
+                                        seed=seed, paired_trials=True, box_mass=mass)}
+    carry = {name: dual_carry(make, int(c.episodes), int(c.max_steps)) for name, make in pair.items()}
+    result = {"velocity_tracking": velocity, "ee_tracking": tracking, "pushes": pushes, "dual_carry": carry,
               "settings": OmegaConf.to_container(cfg), "locomotion": OmegaConf.to_container(base),
               "checkpoint": str(path), "checkpoint_iteration": int(ckpt["counters"]["iteration"]),
               "env_steps": int(ckpt["counters"]["frames"]), "seed": seed, "wall_s": time.monotonic() - t0,

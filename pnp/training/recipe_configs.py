@@ -120,6 +120,13 @@ class EETracking:
 
 
 @dataclass
+class DualCarry:
+    episodes: int = MISSING
+    max_steps: int = MISSING
+    box_mass_kg: float = MISSING
+
+
+@dataclass
 class LLQualityConfig:
     checkpoint: str = MISSING
     runs_root: str = MISSING
@@ -130,6 +137,7 @@ class LLQualityConfig:
     velocity: VelocityGrid = field(default_factory=VelocityGrid)
     pushes: Pushes = field(default_factory=Pushes)
     ee: EETracking = field(default_factory=EETracking)
+    carry: DualCarry = field(default_factory=DualCarry)
 
 
 @dataclass

@@ -3,12 +3,14 @@
 import pytest
 import torch
 
+from pnp.envs.pnp_env import PnPEnv
 from pnp.sim.backend import MujocoBackend
 from pnp.sim.box import SINGLE_ROBOT_BOXES
 from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.legs.backend import LeggedMujocoBackend
 from pnp.sim.robot import LEG_TORQUE, leg_ranges
 from pnp.training.config import LocomotionConfig
+from pnp.studies.ll_carry import dual_carry
 from pnp.studies.ll_quality import (
     Saturation, command_grid, ee_tracking, locomotion_settings, push_recovery, velocity_tracking,
 )
@@ -77,6 +79,17 @@ def test_ee_tracking_converges_on_both_low_levels():
         assert r["trunk_height_mean_m"] is None
 
 
+def test_a_scripted_pair_carries_without_drift_on_the_kinematic_backend():
+    make = lambda n: PnPEnv(n, 2, "kinematic", seed=1, paired_trials=True)  # noqa: E731
+    r = dual_carry(make, episodes=4, max_steps=400)
+    assert r["carried"] == r["success"] == 4 and r["falls"] == 0 and r["grasps_lost_while_carrying"] == 0
+    # Rigid kinematic grasps: the grippers keep their spacing and follow their commands.
+    assert r["spacing_drift_m"]["max"] < 1e-3 and r["ee_error_m"]["samples"] > 4 * 10
+    assert r["trunk_height_min_m"]["samples"] == 4
+    with pytest.raises(ValueError, match="num_robots=1"):
+        dual_carry(lambda n: PnPEnv(n, 1, "kinematic"), episodes=1, max_steps=1)
+
+
 def test_settings_and_grid():
     with pytest.raises(ValueError, match="unknown locomotion settings.*'push_sped'"):
         locomotion_settings(LocomotionConfig(), push_sped=[1.0, 1.0])
@@ -95,10 +108,12 @@ def test_the_recipes_measure_a_leg_policy(tmp_path):
     r = ll_quality_recipe.measure(compose_cfg("ll_quality", [
         f"checkpoint={run}", f"out={out}", "nthread=1", "velocity.grid_steps=2", "velocity.repeats=1",
         "velocity.settle_s=0.2", "velocity.measure_s=0.2", "pushes.episodes=2", "pushes.seconds=0.4",
-        "ee.worlds=2", "ee.switches=1", "ee.base_commands=[[0.0,0.0,0.0]]"]))
+        "ee.worlds=2", "ee.switches=1", "ee.base_commands=[[0.0,0.0,0.0]]", "carry.episodes=1", "carry.max_steps=3"]))
     assert out.exists() and out.with_suffix(".md").exists()
     assert len(r["velocity_tracking"]["per_command"]) == 4 + 2
     assert set(r["ee_tracking"]["+0.00, +0.00, +0.00"]) == {"ideal", "learned"}
+    assert set(r["dual_carry"]) == {"ideal", "learned"} and r["dual_carry"]["learned"]["episodes"] == 1
+    assert "Two robots carrying" in out.with_suffix(".md").read_text()
     assert r["checkpoint_iteration"] == 1 and "commit" in r
     row = benchmark_recipe.bench_low_level(str(run), robots=1, batch=2, steps=2, repeats=1, nthread=1)
     assert row["learned_env_steps_per_s"] > 0 and row["leg_policy_ms_per_env_step"] > 0

@@ -15,6 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pnp.training.checkpoint import load_checkpoint
+from pnp.training.paired import trial_table
 from pnp.training.provenance import provenance
 from pnp.training.rollout import load_policy, run_trials, summarise
 
@@ -60,16 +61,20 @@ def select(run: Path, newest: int, seeds: list[int], trials: int, num_worlds: in
     rows = []
     bar = tqdm(total=len(cands) * len(seeds), disable=not progress, desc="selection")
     for iteration, path in cands:
-        success, causes = {}, {}
+        success, causes, records = {}, {}, {}
         for seed in seeds:
             pol = load_policy(path, min(int(num_worlds), int(trials)), int(seed), **env_overrides)
-            summary = summarise(run_trials(pol.env, pol.actor, int(trials)))
+            trial_records = run_trials(pol.env, pol.actor, int(trials))
+            summary = summarise(trial_records)
             pol.env.close()
             success[str(seed)], causes[str(seed)] = summary["success_rate"], summary["failure_causes"]
+            # Per trial, so that a later A/B on these seeds pairs with a candidate without re-running it.
+            records[str(seed)] = trial_table(trial_records)
             bar.update(1)
             bar.set_postfix(iteration=iteration, success=f"{success[str(seed)]:.3f}")
         rows.append({"iteration": iteration, "checkpoint": str(path), "success": success,
-                     "mean_success": float(np.mean(list(success.values()))), "failure_causes": causes})
+                     "mean_success": float(np.mean(list(success.values()))), "failure_causes": causes,
+                     "trial_records": records})
     bar.close()
     best = max(rows, key=lambda r: (r["mean_success"], r["iteration"]))
     result = {"run": str(run), "seeds": [int(s) for s in seeds], "trials": int(trials), "candidates": rows,

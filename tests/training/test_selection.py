@@ -50,6 +50,9 @@ def test_selection_then_evaluation_of_the_selected_checkpoint(tmp_path):
     best = max(result["candidates"], key=lambda c: (c["mean_success"], c["iteration"]))
     for c in result["candidates"]:
         assert set(c["success"]) == set(c["failure_causes"]) == {"1", "2"} and c["mean_success"] == pytest.approx(sum(c["success"].values()) / 2)
+        for seed, rows in c["trial_records"].items():  # [trial, success, steps, cause], one per trial
+            assert sorted(r[0] for r in rows) == [0, 1, 2, 3]
+            assert sum(r[1] for r in rows) / 4 == pytest.approx(c["success"][seed])
     assert result["selected"] == best["checkpoint"] and "1_far" in best["checkpoint"]
     assert json.loads((run / "selection.json").read_text())["selected"] == best["checkpoint"]
     assert selected_checkpoint(run).as_posix() == best["checkpoint"]

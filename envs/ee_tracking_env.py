@@ -10,7 +10,13 @@ Keys (group ``"agents"``, one robot), laid out as in ``PnPEnv``:
   ("agents", "reward")            [N, 1, 1]  default reward: terms at mu_j, no curriculum
   ("agents", "action_clipped")    [N, 1]     the action was out of bounds and clipped
   "success", "diverged"           [N, 1]     all four points touched / physics diverged
-  "done", "terminated", "truncated" [N, 1]   success / time limit or divergence
+  "success_step"                  [N, 1]     step at which the fourth point was touched, -1 before
+  "done", "terminated", "truncated" [N, 1]   success (if ``terminate_on_success``) / time limit or
+                                              divergence
+
+``terminate_on_success=False`` (training, as in PnPEnv) keeps the episode going after the fourth
+touch: at S4 every point's gated term pays. Ending it there gives up the touched points' per-step
+terms, which taught the policy to stay away from point 4 (docs/history/ablation_ee.md, probe E5).
 
 The stage belongs to ``StageTransition(ee_stage_graph())``; the env keeps its own count
 of points touched (:attr:`points_touched`), advanced by the same forward-only rule, to end
@@ -48,7 +54,7 @@ class EETrackingEnv(RobotEnvBase):
     def __init__(self, num_worlds: int = 64, backend: str | Backend = "mujoco", seed: int = 0,
                  nthread: int | None = None, max_episode_steps: int = int(round(EPISODE_S / HL_DT)),
                  track_rule: str = "gated", track_sigma: tuple[float, float] = TRACK_SIGMA,
-                 point_ring: tuple[float, float] = POINT_RING, device="cpu"):
+                 point_ring: tuple[float, float] = POINT_RING, terminate_on_success: bool = True, device="cpu"):
         if track_rule not in TRACK_RULES:
             raise ValueError(f"track_rule must be one of {TRACK_RULES}, got {track_rule!r}")
         if len(track_sigma) != 2 or min(track_sigma) <= 0:
@@ -60,6 +66,7 @@ class EETrackingEnv(RobotEnvBase):
         if self.backend.num_robots != 1:
             raise ValueError(f"the EE tracking task has one robot; the backend has {self.backend.num_robots}")
         self.track_rule = track_rule  # see pnp.task.ee_tracking.TRACK_RULES
+        self.terminate_on_success = bool(terminate_on_success)
         self.track_sigma, self.point_ring = tuple(map(float, track_sigma)), tuple(map(float, point_ring))
         self._make_specs()
         N = num_worlds
@@ -68,6 +75,7 @@ class EETrackingEnv(RobotEnvBase):
         self._touched = torch.zeros(N, dtype=torch.long)
         self._last_action = _NEUTRAL.expand(N, 1, 8).clone()
         self._steps = torch.zeros(N, dtype=torch.long)
+        self._success_step = torch.full((N,), -1, dtype=torch.long)
         self.clipped_count = 0  # actions clipped since construction
         self.diverged_count = 0  # worlds reset after a physics divergence
         self._set_seed(seed)
@@ -89,7 +97,9 @@ class EETrackingEnv(RobotEnvBase):
         obs["stage_conditions"] = Binary(n=len(EE_CONDITIONS), shape=(1, len(EE_CONDITIONS)), dtype=torch.bool)
         obs["action_clipped"] = Categorical(2, shape=(1,), dtype=torch.bool)
         flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool)  # noqa: E731
-        self.full_observation_spec_unbatched = Composite({"agents": agents(obs), "success": flag(), "diverged": flag()})
+        self.full_observation_spec_unbatched = Composite({
+            "agents": agents(obs), "success": flag(), "diverged": flag(),
+            "success_step": Unbounded(shape=(1,), dtype=torch.long)})
         self.full_reward_spec_unbatched = Composite({"agents": agents({"reward": Unbounded(shape=(1, 1))})})
         self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
 
@@ -101,6 +111,7 @@ class EETrackingEnv(RobotEnvBase):
         self._touched[ids] = 0
         self._last_action[ids] = _NEUTRAL
         self._steps[ids] = 0
+        self._success_step[ids] = -1
 
     @_torch_single_threaded
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -116,11 +127,13 @@ class EETrackingEnv(RobotEnvBase):
         out = self._observe(action, self._last_action, advance=~diverged)
         self._last_action = action
         success = self._touched >= N_POINTS
-        truncated = ((self._steps >= self.max_steps) | diverged) & ~success
+        self._success_step = torch.where(success & (self._success_step < 0), self._steps, self._success_step)
+        terminated = success & self.terminate_on_success
+        truncated = ((self._steps >= self.max_steps) | diverged) & ~terminated
         out.set(("agents", "action_clipped"), clipped)
-        out.update({"terminated": success.unsqueeze(-1), "truncated": truncated.unsqueeze(-1),
-                    "done": (success | truncated).unsqueeze(-1), "success": success.unsqueeze(-1),
-                    "diverged": diverged.unsqueeze(-1)})
+        out.update({"terminated": terminated.unsqueeze(-1), "truncated": truncated.unsqueeze(-1),
+                    "done": (terminated | truncated).unsqueeze(-1), "success": success.unsqueeze(-1),
+                    "diverged": diverged.unsqueeze(-1), "success_step": self._success_step.unsqueeze(-1).clone()})
         return out
 
     def _observe(self, action, last_action, advance: torch.Tensor | None = None) -> TensorDict:
@@ -140,4 +153,7 @@ class EETrackingEnv(RobotEnvBase):
         N = self.num_worlds
         return TensorDict({"agents": TensorDict(agents, batch_size=(N, 1))}, batch_size=(N,))
 
-    _STATE = ("_points", "_touched", "_last_action", "_steps")  # episode bookkeeping (get_state)
+    def _reset_extras(self) -> dict:
+        return {"success_step": self._success_step.unsqueeze(-1).clone()}
+
+    _STATE = ("_points", "_touched", "_last_action", "_steps", "_success_step")  # episode bookkeeping (get_state)

@@ -54,7 +54,7 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
     task = env_cfg.ee_tracking
     return EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=env_cfg.backend, seed=int(seed),
                          nthread=env_cfg.nthread, track_rule=str(task.track_rule), track_sigma=tuple(task.track_sigma),
-                         point_ring=tuple(task.point_ring))
+                         point_ring=tuple(task.point_ring), terminate_on_success=bool(env_cfg.terminate_on_success))
 
 
 def _locomotion_env(env_cfg: DictConfig, seed: int) -> EnvBase:

@@ -121,6 +121,29 @@ def test_scripted_policy_passes_the_stages_in_order_and_the_counts_agree():
     assert seen.all(-1).float().mean() > 0.9
 
 
+def test_without_termination_the_episode_goes_on_at_s4_and_every_term_pays():
+    """terminate_on_success=False (training): the fourth touch ends nothing, success_step keeps
+    its step, and at S4 all four gated terms pay 1 whatever the EE does next."""
+    n, steps = 16, 200
+    env = _env(n, max_episode_steps=steps, terminate_on_success=False)
+    pol = ScriptedEETracking(n)
+    td = env.reset()
+    assert (td["success_step"] == -1).all()
+    first = torch.full((n,), -1)
+    for t in range(1, steps + 1):
+        td = env.step(pol(td))
+        nxt = td["next"]
+        stage = env.points_touched
+        first = torch.where((stage == N_POINTS) & (first < 0), t, first)
+        assert not nxt["terminated"].any()
+        assert torch.equal(nxt["success_step"].reshape(n), first)
+        assert torch.equal(nxt["success"].reshape(n), first >= 0)
+        at_end = stage == N_POINTS
+        assert (nxt["agents", "reward_terms"][at_end, 0, :N_POINTS] == 1.0).all()
+        assert torch.equal(nxt["done"].reshape(n), torch.full((n,), t == steps))
+        td = env.step_mdp(td)
+    assert (first >= 0).float().mean() > 0.9  # most worlds finished, and none of them ended there
+
 
 def test_touch_needs_the_tolerance_and_the_order():
     env = _env(3)
@@ -284,7 +307,9 @@ def test_the_task_settings_reach_the_env_and_bad_ones_are_named():
     cfg = OmegaConf.structured(EnvConfig)
     cfg.task, cfg.backend, cfg.num_worlds = "ee_tracking", "kinematic", 64
     cfg.ee_tracking.point_ring, cfg.ee_tracking.track_sigma = [1.0, 1.2], [3.0, 0.1]
+    cfg.terminate_on_success = False
     env = _ee_tracking_env(cfg, seed=0)
+    assert env.terminate_on_success is False
     horizontal = env._points[..., :2].norm(dim=-1)  # the robot starts at the origin
     assert ((horizontal >= 1.0 - 1e-5) & (horizontal <= 1.2 + 1e-5)).all()
     wide = env._observe(_neutral(env), _neutral(env))["agents", "reward_terms"][:, 0, 0]

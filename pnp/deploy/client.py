@@ -216,8 +216,9 @@ def student_transforms(scfg, sensor_noise: bool, sensor_dropouts: bool, seed: in
     return [*noise_transforms(noise, OBS, STUDENT_OBS, seed, int(scfg.env.num_robots)), history_transform(scfg.student)]
 
 
-def run_client(cfg, onnx_path: str) -> dict:
-    """Joins, then acts until the world says the trials are over; returns its counters."""
+def run_client(cfg, onnx_path: str, stats: dict | None = None) -> dict:
+    """Joins, then acts until the world says the trials are over; returns its counters, which
+    ``stats["counts"]`` holds live from the join on (for an exit by error or signal)."""
     import grpc
     from torchrl.envs import Compose, TransformedEnv
 
@@ -236,6 +237,8 @@ def run_client(cfg, onnx_path: str) -> dict:
     world = pb_grpc.RobotStub(channel(cfg.world_address, cfg.max_message_bytes))
     base = RemoteRobotEnv(rid, world, coordinator, int(reply.worlds), int(reply.num_robots), scfg.env.handle_order,
                           float(reply.tick_s))
+    if stats is not None:
+        stats["counts"] = base.counts
     # Each robot's sensors draw their own noise: a seed per robot.
     env = TransformedEnv(base, Compose(*student_transforms(scfg, bool(cfg.sensor_noise), bool(cfg.sensor_dropouts),
                                                            resolve_seed(cfg.seed) + 1000 * (rid + 1))))
@@ -258,6 +261,7 @@ def run_client(cfg, onnx_path: str) -> dict:
 
 def main(argv=None) -> None:
     import json
+    import signal
     import sys
 
     from pnp.deploy.config import deploy_config
@@ -273,10 +277,18 @@ def main(argv=None) -> None:
         from pnp.deploy.student_io import load_student
 
         onnx = str(export_onnx(deployed_student(load_student(cfg.checkpoint).actor), f"student_robot{cfg.robot_id}.onnx"))
-    counts = run_client(cfg, onnx)
-    if cfg.out:
-        with open(cfg.out, "w") as f:
-            json.dump(counts, f)
+    # A runner that gives up waiting sends SIGTERM: the counters are still written, with how it ended.
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(f"robot {cfg.robot_id}: terminated"))
+    stats, ended = {}, "finished"
+    try:
+        run_client(cfg, onnx, stats)
+    except BaseException as error:
+        ended = f"{type(error).__name__}: {error}"
+        raise
+    finally:
+        if cfg.out:
+            with open(cfg.out, "w") as f:
+                json.dump({**stats.get("counts", {}), "ended": ended}, f)
 
 
 if __name__ == "__main__":

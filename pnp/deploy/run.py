@@ -123,7 +123,7 @@ def run(cfg, workdir: Path) -> dict:
             try:
                 proc.wait(timeout=30)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                proc.terminate()  # the client writes its counters on SIGTERM (below, else killed)
     finally:
         if restart is not None:
             restart.stop()

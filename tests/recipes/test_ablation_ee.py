@@ -38,6 +38,9 @@ def test_ablation_runs_resumes_and_reports(tmp_path):
         # A share of 3 trials, with a completion time exactly when something succeeded.
         assert r["trials"] == 3 and r["success_rate"] * 3 == pytest.approx(round(r["success_rate"] * 3))
         assert (r["completion_time_mean_s"] is None) == (r["success_rate"] == 0.0)
+        for ev in (r, r["sampled"]):  # deterministic, and the same trials with drawn actions
+            assert ev["trials"] == 3 and 0 <= ev["mean_end_stage"] <= 4
+            assert ev["success_rate"] == 0.0 or ev["mean_end_stage"] > 0
         assert r["budget"]["iterations"] == 2 and r["budget"]["frames"] == 48
     for key in [*ablation_ee.CURVES, "rho"]:
         assert (tmp_path / f"ablation_ee_{key}.png").stat().st_size > 0
@@ -82,3 +85,9 @@ def test_a_signal_stops_the_whole_ablation(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="stopped by a signal during dynamic seed 0"):
         ablation_ee.run_ablation(cfg)
     assert calls == ["dynamic"] and not (tmp_path / "a.json").exists()
+
+
+def test_a_variant_is_dropped_by_null_and_a_schedule_added():
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
+        cfg = compose("ablation_ee", overrides=["schedules=[dynamic,fixed]", "variants.dynamic_floor=null"])
+    assert ablation_ee.methods(cfg) == {"dynamic": ["curriculum.schedule=dynamic"], "fixed": ["curriculum.schedule=fixed"]}

@@ -196,6 +196,29 @@ def test_schedules_run_on_the_env(schedule):
         assert (sched.rho[..., 0] < 10.0).any()
 
 
+def test_under_the_gated_rule_liu_max_pays_what_fixed_scales_pay():
+    # A touched point's gated term is 1, Liu (max)'s constant for it mu * high = mu * 1; a later
+    # point's term is 0 under both: the two schedules are one reward (the ablation runs liu_max only).
+    n = 8
+    envs = [_curriculum_env(schedule, n, max_episode_steps=40)[0] for schedule in ("fixed", "liu_max")]
+    pols = [ScriptedEETracking(n) for _ in envs]
+    tds = [env.reset() for env in envs]
+    stages_seen = set()
+    for _ in range(60):
+        tds = [env.step(pol(td)) for env, pol, td in zip(envs, pols, tds)]
+        a, b = (td["next"] for td in tds)
+        torch.testing.assert_close(a["agents", "reward_terms"], b["agents", "reward_terms"], rtol=0, atol=0)
+        torch.testing.assert_close(a["agents", "reward"], b["agents", "reward"], rtol=1e-6, atol=1e-5)
+        stages_seen |= set(a["agents", "stage"].flatten().tolist())
+        done = a["done"].reshape(n)
+        tds = [env.step_mdp(td) for env, td in zip(envs, tds)]
+        if done.any():
+            tds = [env.reset(td.set("_reset", done.unsqueeze(-1))) for env, td in zip(envs, tds)]
+            for pol in pols:
+                pol.reset(done)
+    assert len(stages_seen) >= 3  # the comparison covered completed, current and later points
+
+
 def test_truncation_at_the_episode_limit():
     env = _env(2, max_episode_steps=3)
     td = env.reset()

@@ -87,7 +87,11 @@ def test_a_signal_stops_the_whole_ablation(tmp_path, monkeypatch):
     assert calls == ["dynamic"] and not (tmp_path / "a.json").exists()
 
 
-def test_a_variant_is_dropped_by_null_and_a_schedule_added():
+def test_variants_are_added_and_dropped_from_the_command_line():
+    add = "+variants.dynamic_floor={schedule: dynamic, overrides: ['curriculum.completed_floor=0.5']}"
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "config"), version_base="1.3"):
-        cfg = compose("ablation_ee", overrides=["schedules=[dynamic,fixed]", "variants.dynamic_floor=null"])
-    assert ablation_ee.methods(cfg) == {"dynamic": ["curriculum.schedule=dynamic"], "fixed": ["curriculum.schedule=fixed"]}
+        cfg = compose("ablation_ee", overrides=["schedules=[dynamic,fixed]", add])
+        dropped = compose("ablation_ee", overrides=[add, "variants.dynamic_floor=null"])
+    assert ablation_ee.methods(cfg) == {"dynamic": ["curriculum.schedule=dynamic"], "fixed": ["curriculum.schedule=fixed"],
+                                        "dynamic_floor": ["curriculum.schedule=dynamic", "curriculum.completed_floor=0.5"]}
+    assert list(ablation_ee.methods(dropped)) == ["dynamic", "liu_max", "liu_min"]

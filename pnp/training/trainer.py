@@ -277,6 +277,9 @@ class Trainer:
             # Adam's moments and the adapted lr too: a fresh Adam at optim.lr took a sharp
             # (entropy -19) policy to KL 74 in its first iteration (measured).
             load_optimiser(self.optim, init["optim"])
+            if cfg.optim.lr_schedule == "fixed":  # a fixed lr is this run's, not the adapted one it carried
+                for group in self.optim.param_groups:
+                    group["lr"] = float(cfg.optim.lr)
             for hook in self.hooks:
                 hook.on_warm_start(self, init)
             if m.obs_norm is not None and cfg.warm_start_fold_constant:

@@ -97,6 +97,18 @@ def test_warm_start_copies_weights_adam_and_optionally_the_curriculum(tmp_path):
     assert torch.equal(rho_a, rho_b) and not (rho_a == 0.1).all()
 
 
+def test_a_warm_start_at_a_fixed_lr_runs_at_that_lr_not_the_carried_one(tmp_path):
+    # A branched phase with optim.lr_schedule=fixed once ran at the adapted lr it carried (1e-5, asked 1e-4).
+    tiny_train(tmp_path / "src", "total_iterations=2", "optim.lr=3e-4")
+    tiny_train(tmp_path / "dst", "total_iterations=1", f"warm_start={tmp_path / 'src'}",
+               "optim.lr_schedule=fixed", "optim.lr=1e-4")
+    carried = load_checkpoint(tmp_path / "src" / "checkpoint.pt")["optim"]["param_groups"][0]["lr"]
+    lr = load_checkpoint(tmp_path / "dst" / "checkpoint.pt")["optim"]["param_groups"][0]["lr"]
+    assert carried != 1e-4 and lr == 1e-4
+    rows = [json.loads(line) for line in (tmp_path / "dst" / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["train/lr"] == 1e-4
+
+
 def test_start_final_puts_every_warm_started_slot_in_the_final_stage(tmp_path):
     tiny_train(tmp_path / "src", "total_iterations=2")
     tiny_train(tmp_path / "dst", "total_iterations=0", f"warm_start={tmp_path / 'src'}", "warm_start_curriculum=true",

@@ -116,12 +116,39 @@ def trained_models(ckpt: dict, cfg: DictConfig, env: TransformedEnv, backend: st
     return models, folded
 
 
-def _act(actor, td: TensorDictBase, groups: tuple[str, ...]) -> TensorDictBase:
-    """The mean action, with the entries of ``groups`` replaced by a draw from the policy."""
+class TrialNoise:
+    """Draws from the policy that depend on (evaluation seed, trial, step in the trial) alone, so
+    a sampled evaluation stays paired: trial i meets the same noise whatever the world count or
+    the order in which episodes end (the global stream would hand it to whichever world is next)."""
+
+    STREAM = 1  # keeps these draws apart from the layouts' stream of the same (seed, trial)
+
+    def __init__(self, base_env):
+        self.base = base_env
+
+    def seeds(self, steps: torch.Tensor) -> list[int]:
+        """One 63-bit seed per world from its trial and ``steps`` [W] (steps taken in the trial)."""
+        seed = int(self.base._trial_seed) & (2**63 - 1)
+        return [int(np.random.SeedSequence([seed, int(t), int(k), self.STREAM]).generate_state(1, np.uint64)[0])
+                & (2**63 - 1) for t, k in zip(self.base.trial.tolist(), steps.tolist())]
+
+    def draw(self, actor, td: TensorDictBase) -> torch.Tensor:
+        rows = []
+        for w, seed in enumerate(self.seeds(td["step_count"].reshape(len(td), -1)[:, 0])):
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                rows.append(dist_from_params(actor, td[w:w + 1]).sample())
+        return torch.cat(rows)
+
+
+def _act(actor, td: TensorDictBase, groups: tuple[str, ...], noise: TrialNoise | None = None) -> TensorDictBase:
+    """The mean action, with the entries of ``groups`` replaced by a draw from the policy
+    (``noise``: per-trial draws; else the global stream)."""
     td = actor(td)
     if not groups:
         return td
-    drawn = dist_from_params(actor, td).sample()  # from the loc/scale just written: no second forward
+    # From the loc/scale just written: no second forward.
+    drawn = noise.draw(actor, td) if noise is not None else dist_from_params(actor, td).sample()
     action = td[ACTION].clone()
     for g in groups:
         action[..., ACTION_GROUPS[g]] = drawn[..., ACTION_GROUPS[g]]
@@ -183,7 +210,8 @@ class TrialHook(Protocol):
 def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, sample=None,
                hook: TrialHook | None = None) -> list[dict]:
     """Exactly ``trials`` episodes with the deterministic (mean) action (``sample``: action
-    groups drawn from the policy instead, a diagnostic; ``hook``: see :class:`TrialHook`).
+    groups drawn from the policy instead, a diagnostic, per trial on a paired env (:class:`TrialNoise`);
+    ``hook``: see :class:`TrialHook`).
 
     On an env with ``paired_trials`` (evaluation), the trials are trials 0..N-1 of the env's
     seed, whatever the world count: records come back in trial order, each with its
@@ -200,10 +228,11 @@ def run_trials(env: TransformedEnv, actor, trials: int, progress: bool = False, 
     records, step = [], 0
     bar = tqdm(total=trials, disable=not progress, desc="trials")
     td, recurrent = init_state(env.reset(), actor), recurrent_net(actor) is not None
+    noise = TrialNoise(base) if groups and paired else None
     with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
         while len(records) < trials if paired else bool((count < per_world).any()):
             running = base.trial.clone() if paired else None  # done worlds are reset within the step
-            td = _act(actor, td, groups)
+            td = _act(actor, td, groups, noise)
             out, td = env.step_and_maybe_reset(td)
             if recurrent:
                 carry_state(out, td)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ from tensordict import TensorDict
 from pnp.task.scripted import ScriptedPnP
 from pnp.task.terms import CONDITIONS, REWARD_TERMS
 from pnp.training.keys import ACTION
-from pnp.training.rollout import ACTION_GROUPS, _act, classify_failures, load_policy, run_trials, summarise
+from pnp.training.rollout import ACTION_GROUPS, TrialNoise, _act, classify_failures, load_policy, run_trials, summarise
 from pnp.distill.student import add_observation_noise
 from pnp.training.tasks import make_env
 from tests.training._tiny import compose_cfg, tiny_train
@@ -104,6 +105,22 @@ def test_sample_draws_only_the_named_action_groups(tmp_path):
     assert not torch.allclose(mixed[..., ee], mean[..., ee])  # drawn, not the mean
     with pytest.raises(ValueError, match="'wrist'"):
         run_trials(pol.env, pol.actor, trials=1, sample=["wrist"])
+    # Per-trial draws: world w's draw follows its (trial, step), not its place in the batch.
+    one = pol.actor(pol.env.reset()[:1])
+    rows = torch.cat([one] * 3)
+    draws = {}
+    for trials, steps in (([5, 2, 9], [0, 3, 0]), ([9, 5, 2], [0, 0, 3])):
+        base = SimpleNamespace(_trial_seed=11, trial=torch.tensor(trials))
+        rows.set("step_count", torch.tensor(steps).view(3, 1))
+        for t, k, d in zip(trials, steps, TrialNoise(base).draw(pol.actor, rows)):
+            draws.setdefault((t, k), []).append(d)
+    assert all(torch.equal(a, b) for a, b in draws.values()) and len(draws) == 3
+    again = SimpleNamespace(_trial_seed=11, trial=torch.tensor([5, 5, 6]))
+    rows.set("step_count", torch.tensor([0, 1, 0]).view(3, 1))
+    d = TrialNoise(again).draw(pol.actor, rows)
+    assert torch.equal(d[0], draws[(5, 0)][0]) and not torch.equal(d[0], d[1]) and not torch.equal(d[0], d[2])
+    short = load_policy(tmp_path / "run" / "checkpoint.pt", 2, seed=0, max_episode_steps=5)
+    assert [r["trial"] for r in run_trials(short.env, short.actor, trials=3, sample=["ee"])] == [0, 1, 2]
     with pytest.raises(ValueError, match="'gravity'"):
         load_policy(tmp_path / "run" / "checkpoint.pt", 4, seed=0, gravity=1.0)
 

@@ -61,12 +61,14 @@ def sample_layout(rng: torch.Generator, m: int, num_robots: int, assets: tuple[B
     )
 
 
-def trial_generator(seed: int, trial: int) -> torch.Generator:
+def trial_generator(seed: int, trial: int, *stream: int) -> torch.Generator:
     """The random stream of trial ``trial`` under evaluation seed ``seed``: a function of the
-    pair alone (NumPy's SeedSequence mixes both into independent 63-bit seeds)."""
+    pair alone (NumPy's SeedSequence mixes both into independent 63-bit seeds). ``stream``:
+    more keys for other streams of the same trial (the layout's has none)."""
     if trial < 0:
         raise ValueError(f"trial index must be >= 0, got {trial}")
-    state = np.random.SeedSequence([int(seed) & (2**63 - 1), int(trial)]).generate_state(1, np.uint64)[0]
+    keys = [int(seed) & (2**63 - 1), int(trial), *(int(k) for k in stream)]
+    state = np.random.SeedSequence(keys).generate_state(1, np.uint64)[0]
     return torch.Generator().manual_seed(int(state) & (2**63 - 1))
 
 

@@ -30,7 +30,7 @@ from tensordict.nn import InteractionType, ProbabilisticTensorDictSequential, se
 from torchrl.envs import TransformedEnv
 from tqdm import tqdm
 
-from pnp.sim.layout import START_RANGE
+from pnp.sim.layout import START_RANGE, trial_generator
 from pnp.sim.scene import GOAL_RADIUS
 from pnp.task import ACTION_NAMES, OBS_FIELDS
 from pnp.task.terms import CONDITIONS, REWARD_TERMS, STAGES
@@ -127,10 +127,9 @@ class TrialNoise:
         self.base = base_env
 
     def seeds(self, steps: torch.Tensor) -> list[int]:
-        """One 63-bit seed per world from its trial and ``steps`` [W] (steps taken in the trial)."""
-        seed = int(self.base._trial_seed) & (2**63 - 1)
-        return [int(np.random.SeedSequence([seed, int(t), int(k), self.STREAM]).generate_state(1, np.uint64)[0])
-                & (2**63 - 1) for t, k in zip(self.base.trial.tolist(), steps.tolist())]
+        """One seed per world from its trial and ``steps`` [W] (steps taken in the trial)."""
+        return [trial_generator(self.base._trial_seed, t, k, self.STREAM).initial_seed()
+                for t, k in zip(self.base.trial.tolist(), steps.tolist())]
 
     def draw(self, actor, td: TensorDictBase) -> torch.Tensor:
         rows = []

@@ -10,6 +10,7 @@ from pnp.task.state import ACTION_HIGH, ACTION_LOW, PnPState
 from pnp.task.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
 MAX_OBJ_HEIGHT = 0.3  # m, "max height" of Table II's object height / drop terms
+APPROACH_RADIUS = 0.5  # m, EE to handle (horizontal); base_approach pays only beyond it
 
 # Constant tensors, built once (CPU, float32).
 _F32 = torch.float32
@@ -34,8 +35,11 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
     tx, ty = s.goal[:, 0] - s.box_pos[:, 0], s.goal[:, 1] - s.box_pos[:, 1]
     v_goal = (s.box_vel[:, 0] * tx + s.box_vel[:, 1] * ty) / torch.hypot(tx, ty).clamp(min=1e-6)
     dq = s.arm_q - _ARM_DEFAULT
+    reach = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
+    towards = (s.base_vel[..., 0] * g.ee_handle[..., 0] + s.base_vel[..., 1] * g.ee_handle[..., 1]) / reach.clamp(min=1e-6)
+    far = (reach > APPROACH_RADIUS) & ~g.grasped.any(1, keepdim=True)
     terms = {
-        "gripper_ready_pose": torch.exp(-3 * torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])) * g.align,
+        "gripper_ready_pose": torch.exp(-3 * reach) * g.align,
         "gripper_grasp_pose": torch.exp(-10 * g.ee_handle[..., 2].abs()) * g.align,
         "object_grabbed": g.grasped.float(),
         "grab_action": torch.where(g.grasped, p, 1 - p),
@@ -53,6 +57,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "fall": g.fell.float(),
         "gripper_toggle": (((p > 0.5) != (last_action[..., 7] > 0.5)) & ~g.grasped).float(),
         "object_tilt": torch.where(g.grasped.any(1, keepdim=True), 0.0, box(1 - s.box_rot[:, 2, 2])),
+        "base_approach": torch.where(far, towards.clamp(-1.0, 1.0), 0.0),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

@@ -77,6 +77,12 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     # upright, 1 on its side). Fingers tipping the unheld box end most failed MuJoCo trials
     # (docs/history/pipeline_single/run_8.md); a grip lifting one handle tilts it, hence unheld only.
     RewardTerm("object_tilt", None, 0.0, 0.0, 2.0),
+    # Not in the paper, off unless set (a positive weight): the base's speed towards its handle
+    # (m/s, clamped to [-1, 1]) while the EE is over APPROACH_RADIUS away and nobody holds the box.
+    # S0's exp(-3 d) pays ~0 beyond 2 m, so a robot that far can stand still at no loss
+    # (docs/history/make_train_cost.md). A rate of approach sums to the distance covered:
+    # walking to and fro earns nothing.
+    RewardTerm("base_approach", None, 0.0, -1.0, 1.0),
 )
 
 REWARD_TERMS: tuple[str, ...] = tuple(t.name for t in REWARD_TABLE)

@@ -187,3 +187,30 @@ def test_object_tilt_costs_the_unheld_box_leaving_upright():
         assert T.reward_terms(s, held, action, action, T.stage_conditions(s, held))[..., col].eq(0).all()
     finally:
         env.close()
+
+
+def test_base_approach_pays_the_speed_towards_the_handle_only_while_far_and_unheld():
+    env = PnPEnv(num_worlds=4, num_robots=1, backend="kinematic", seed=0, nthread=1)
+    try:
+        env.reset()
+        col = REWARD_TERMS.index("base_approach")
+        action = env._last_action.clone()
+        s = env.backend.state(env._goal, env._init_goal_dist, action[..., 7])
+        g = dataclasses.replace(T.geometry(s), grasped=torch.zeros(4, 1, dtype=torch.bool))
+        to_handle = g.ee_handle[..., :2] / g.ee_handle[..., :2].norm(dim=-1, keepdim=True)
+        assert (g.ee_handle[..., :2].norm(dim=-1) > 0.6).all()  # every start is beyond the radius
+
+        def paid(vel_xy, geom=g, state=s):
+            moving = dataclasses.replace(state, base_vel=torch.cat([vel_xy, torch.zeros(4, 1, 1)], -1))
+            return T.reward_terms(moving, geom, action, action, T.stage_conditions(moving, geom))[:, 0, col]
+
+        speed = torch.tensor([0.5, -0.5, 3.0, 0.0]).view(4, 1, 1)
+        assert torch.allclose(paid(speed * to_handle), torch.tensor([0.5, -0.5, 1.0, 0.0]), atol=1e-5)
+        sideways = torch.stack([-to_handle[..., 1], to_handle[..., 0]], -1)
+        assert paid(sideways).abs().max() < 1e-5
+        held = dataclasses.replace(g, grasped=torch.ones(4, 1, dtype=torch.bool))
+        assert paid(to_handle, held).eq(0).all()
+        near = dataclasses.replace(g, ee_handle=g.ee_handle * 0.4 / g.ee_handle[..., :2].norm(dim=-1, keepdim=True))
+        assert paid(to_handle, near).eq(0).all()  # within 0.5 m the stage terms take over
+    finally:
+        env.close()

@@ -22,7 +22,9 @@ _PER_SEED = ("success_rate", "completion_time_mean_s", "failure_causes", "train_
 
 
 def _load(run: Path, eval_name: str) -> dict:
-    path = run / eval_name
+    """``run``: a seed's run folder (its ``eval_name`` is read), or that evaluation's JSON itself
+    (a run folder is not kept once its evaluation is in results/)."""
+    path = run if run.suffix == ".json" else run / eval_name
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no evaluation of this seed's run (make train's last step writes it)")
     result = json.loads(path.read_text())
@@ -52,7 +54,7 @@ def goal_checks(seeds: dict, summary: dict, commits: list[str], goals: dict) -> 
 
 
 def seed_study(runs: list[Path], eval_name: str, goals: dict, command: str) -> dict:
-    """``runs``: the seeds' run folders. Returns the multi-seed result, keyed by training seed."""
+    """``runs``: the seeds' run folders or evaluation files. Returns the multi-seed result, keyed by training seed."""
     evals = {}
     for run in runs:
         result = _load(Path(run), eval_name)

@@ -50,5 +50,7 @@ def test_two_commits_an_unknown_folder_and_a_repeated_seed_are_said(tmp_path):
     assert not result["goals"]["from_empty_folders"]["met"]  # unknown is not met
     with pytest.raises(ValueError, match="both trained with seed 0"):
         seed_study([runs[0], _eval(tmp_path / "again", 0, [1, 1])], "eval_single_pnp.json", _goals(), "cmd")
+    by_file = seed_study([runs[1] / "eval_single_pnp.json", runs[0]], "eval_single_pnp.json", _goals(), "cmd")
+    assert by_file["seeds"]["1"]["eval_file"] == str(runs[1] / "eval_single_pnp.json")
     with pytest.raises(FileNotFoundError, match="no evaluation of this seed's run"):
         seed_study([tmp_path / "missing"], "eval_single_pnp.json", _goals(), "cmd")

@@ -1,6 +1,6 @@
 """Where the gripper is while it approaches the unheld box, and just before the box tips.
 
-    python recipes/analyze/approach.py checkpoint=results/repro_single_pnp_checkpoint.pt \
+    python recipes/analyze/approach.py checkpoint=results/run18_single_pnp_checkpoint.pt \
         out=runs/approach.json trials=100 seed=777 env.num_worlds=100
 
 After every high-level step, for each robot whose box nobody holds: the EE's horizontal

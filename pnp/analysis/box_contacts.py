@@ -1,6 +1,6 @@
 """Which robot parts touch the unheld box, and which touched it just before it tipped (MuJoCo).
 
-    python recipes/analyze/box_contacts.py checkpoint=results/repro_single_pnp_checkpoint.pt \
+    python recipes/analyze/box_contacts.py checkpoint=results/run18_single_pnp_checkpoint.pt \
         out=runs/box_contacts.json trials=100 seed=777 env.num_worlds=100
 
 After every high-level step each world's state is loaded into one ``MjData`` and

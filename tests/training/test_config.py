@@ -19,7 +19,7 @@ from tests.training._tiny import ROOT, TINY, compose_cfg
 EXPERIMENT_DIR = ROOT / "recipes" / "config" / "experiment"
 EXPERIMENTS = sorted(p.relative_to(EXPERIMENT_DIR).with_suffix("").as_posix() for p in EXPERIMENT_DIR.rglob("*.yaml"))
 QUOTED_CHECKPOINTS = ["results/train_single/checkpoint_mujoco.pt", "results/train_single/checkpoint_kinematic.pt",
-                      "results/train_dual/dual_mj2/checkpoint.pt", "results/repro_single_pnp_checkpoint.pt",
+                      "results/train_dual/dual_mj2/checkpoint.pt", "results/run18_single_pnp_checkpoint.pt",
                       "results/repro_dual_pnp_checkpoint.pt", "results/repro_dual_pnp_free_handles_checkpoint.pt"]
 
 

@@ -79,9 +79,9 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     RewardTerm("object_tilt", None, 0.0, 0.0, 2.0),
     # Not in the paper, off unless set (a positive weight): the base's speed towards its handle
     # (m/s, clamped to [-1, 1]) while the EE is over APPROACH_RADIUS away and nobody holds the box.
-    # S0's exp(-3 d) pays ~0 beyond 2 m, so a robot that far can stand still at no loss
-    # (docs/history/make_train_cost.md). A rate of approach sums to the distance covered:
-    # walking to and fro earns nothing.
+    # S0's exp(-3 d) pays ~0 beyond 2 m. A rate of approach sums to the distance covered: walking
+    # to and fro earns nothing. Not adopted: an A/B against a stand-still misread as far from the box
+    # (docs/history/make_train_cost.md).
     RewardTerm("base_approach", None, 0.0, -1.0, 1.0),
 )
 

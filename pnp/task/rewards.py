@@ -11,6 +11,9 @@ from pnp.task.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, 
 
 MAX_OBJ_HEIGHT = 0.3  # m, "max height" of Table II's object height / drop terms
 APPROACH_RADIUS = 0.5  # m, EE to handle (horizontal); base_approach pays only beyond it
+# m, base to handle (horizontal) where base_stance pays in full / nothing: the default arm pose's
+# EE is 0.75 m ahead of the base; ~1.05 m is the arm's full reach at a handle's height.
+STANCE_M = (0.75, 1.05)
 
 # Constant tensors, built once (CPU, float32).
 _F32 = torch.float32
@@ -37,7 +40,10 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
     dq = s.arm_q - _ARM_DEFAULT
     reach = torch.hypot(g.ee_handle[..., 0], g.ee_handle[..., 1])
     towards = (s.base_vel[..., 0] * g.ee_handle[..., 0] + s.base_vel[..., 1] * g.ee_handle[..., 1]) / reach.clamp(min=1e-6)
-    far = (reach > APPROACH_RADIUS) & ~g.grasped.any(1, keepdim=True)
+    unheld = ~g.grasped.any(1, keepdim=True)
+    far = (reach > APPROACH_RADIUS) & unheld
+    stance = torch.hypot(g.handle[..., 0] - s.base[..., 0], g.handle[..., 1] - s.base[..., 1])
+    stance = ((STANCE_M[1] - stance) / (STANCE_M[1] - STANCE_M[0])).clamp(0.0, 1.0)
     terms = {
         "gripper_ready_pose": torch.exp(-3 * reach) * g.align,
         "gripper_grasp_pose": torch.exp(-10 * g.ee_handle[..., 2].abs()) * g.align,
@@ -58,6 +64,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "gripper_toggle": (((p > 0.5) != (last_action[..., 7] > 0.5)) & ~g.grasped).float(),
         "object_tilt": torch.where(g.grasped.any(1, keepdim=True), 0.0, box(1 - s.box_rot[:, 2, 2])),
         "base_approach": torch.where(far, towards.clamp(-1.0, 1.0), 0.0),
+        "base_stance": torch.where(unheld, stance, 0.0),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 

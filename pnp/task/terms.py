@@ -83,6 +83,11 @@ REWARD_TABLE: tuple[RewardTerm, ...] = (
     # to and fro earns nothing. Not adopted: an A/B against a stand-still misread as far from the box
     # (docs/history/make_train_cost.md).
     RewardTerm("base_approach", None, 0.0, -1.0, 1.0),
+    # Not in the paper, off unless set (a positive weight): 1 with the base within STANCE_M[0] of its
+    # handle, 0 beyond STANCE_M[1], linear between, while nobody holds the box. The policies approach
+    # every box to ~1.03 m, the arm's full reach, and the mean action stalls where the handle is a
+    # little out of it (docs/history/make_train_cost.md, "The stand-still, measured again").
+    RewardTerm("base_stance", None, 0.0, 0.0, 1.0),
 )
 
 REWARD_TERMS: tuple[str, ...] = tuple(t.name for t in REWARD_TABLE)

@@ -16,7 +16,7 @@ from pnp.task import (
     ACTION_HIGH, ACTION_LOW, FALL_HEIGHT, FOOTPRINT_HALF, GRASP_DIST, LIFT_HEIGHT, MAX_OBJ_HEIGHT, OBS_BLOCKS, ON_FLOOR, READY_ALIGN,
     READY_XY, READY_Z, Geometry, PnPState,
 )
-from pnp.task.rewards import APPROACH_RADIUS
+from pnp.task.rewards import APPROACH_RADIUS, STANCE_M
 from pnp.task.terms import CONDITIONS, REWARD_TABLE, REWARD_TERMS, STAGE_GATES, STAGE_PROGRESS_TERM
 
 
@@ -136,6 +136,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "gripper_toggle": ((action[..., 7] > 0.5).ne(last_action[..., 7] > 0.5) & ~g.grasped).float(),
         "object_tilt": (1 - s.box_rot[:, None, 2, 2]).expand(-1, R) * (~g.grasped.any(1, keepdim=True)).float(),
         "base_approach": _base_approach(s, g),
+        "base_stance": _base_stance(s, g),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
 
@@ -146,6 +147,13 @@ def _base_approach(s: PnPState, g: Geometry) -> torch.Tensor:
     speed = (s.base_vel[..., :2] * to_handle).sum(-1) / dist.clamp(min=1e-6)
     pays = (dist > APPROACH_RADIUS) & ~g.grasped.any(1, keepdim=True)
     return speed.clamp(-1.0, 1.0) * pays.float()
+
+
+def _base_stance(s: PnPState, g: Geometry) -> torch.Tensor:
+    near, far = STANCE_M
+    dist = (g.handle[..., :2] - s.base[..., :2]).norm(dim=-1)
+    share = torch.clamp((far - dist) / (far - near), 0.0, 1.0)
+    return share * (~g.grasped.any(1, keepdim=True)).float()
 
 
 def _action_bounds(action):

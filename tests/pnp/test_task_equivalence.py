@@ -214,3 +214,22 @@ def test_base_approach_pays_the_speed_towards_the_handle_only_while_far_and_unhe
         assert paid(to_handle, near).eq(0).all()  # within 0.5 m the stage terms take over
     finally:
         env.close()
+
+
+def test_base_stance_pays_for_the_base_near_its_handle_only_while_unheld():
+    env = PnPEnv(num_worlds=4, num_robots=1, backend="kinematic", seed=0, nthread=1)
+    try:
+        env.reset()
+        col = REWARD_TERMS.index("base_stance")
+        action = env._last_action.clone()
+        s = env.backend.state(env._goal, env._init_goal_dist, action[..., 7])
+        g = dataclasses.replace(T.geometry(s), grasped=torch.zeros(4, 1, dtype=torch.bool))
+        dist = torch.tensor([0.6, 0.9, 1.2, 3.0]).view(4, 1)  # inside, halfway, beyond, far
+        handle = torch.stack([s.base[..., 0] + 0.6 * dist, s.base[..., 1] - 0.8 * dist, g.handle[..., 2]], -1)
+        placed = dataclasses.replace(g, handle=handle)
+        paid = T.reward_terms(s, placed, action, action, T.stage_conditions(s, placed))[:, 0, col]
+        assert torch.allclose(paid, torch.tensor([1.0, 0.5, 0.0, 0.0]), atol=1e-5)
+        held = dataclasses.replace(placed, grasped=torch.ones(4, 1, dtype=torch.bool))
+        assert T.reward_terms(s, held, action, action, T.stage_conditions(s, held))[..., col].eq(0).all()
+    finally:
+        env.close()

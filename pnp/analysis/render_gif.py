@@ -8,8 +8,8 @@
 
 With ``--checkpoint`` the trained teacher acts with its deterministic (mean) action on the
 MuJoCo backend (the robot count is the checkpoint's); up to ``--tries`` episodes (layouts
-drawn in turn from ``--seed``) are rendered until one succeeds, and the JSON says how
-many it took.
+drawn in turn from ``--seed``) are rendered until one ends as ``--outcome`` asks (a success, or
+a failure to show beside it), and the JSON says how many it took and whether one did.
 
 Needs Debian's ``libegl1 libegl-mesa0 libgl1-mesa-dri`` (``make render-deps``).
 """
@@ -70,7 +70,9 @@ def main(argv=None):
     p.add_argument("--every", type=int, default=2, help="keep every n-th HL step (10 Hz)")
     p.add_argument("--out", default="results/scripted_pnp.gif")
     p.add_argument("--checkpoint", default=None, help="a trained teacher (run folder or .pt); default: scripted")
-    p.add_argument("--tries", type=int, default=10, help="with --checkpoint: episodes tried until a success")
+    p.add_argument("--tries", type=int, default=10, help="with --checkpoint: episodes tried until --outcome")
+    p.add_argument("--outcome", choices=("success", "failure"), default="success",
+                   help="with --checkpoint: the kind of episode to keep")
     p.add_argument("--max-steps", type=int, default=None, help="cut the episode short (default: 45 s)")
     p.add_argument("--low-level-checkpoint", default=None,
                    help="with --checkpoint: a task=locomotion run; the teacher acts on its walking legs")
@@ -100,9 +102,10 @@ def _render_teacher(args) -> dict:
     for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
             info = render_episode(env, actor, args.out, every=args.every, max_steps=args.max_steps)
-        if info["success"]:
+        if info["success"] == (args.outcome == "success"):
             break
     env.close()
+    info["outcome_wanted"], info["outcome_found"] = args.outcome, info["success"] == (args.outcome == "success")
     info.update(provenance(seed=args.seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
                            episodes_tried=k + 1, folded_inputs=folded, low_level=str(pol.cfg.env.low_level),
                            low_level_checkpoint=args.low_level_checkpoint))

@@ -36,3 +36,7 @@ def test_render_a_trained_checkpoint(tmp_path):
                                "--max-steps", "4", "--every", "2"])
     assert out.stat().st_size > 0 and info["checkpoint_iteration"] == 1 and info["episodes_tried"] == 2
     assert info["steps"] == 4 and not info["success"]  # 0.4 s: no policy succeeds that fast
+    assert info["outcome_wanted"] == "success" and not info["outcome_found"]
+    info = render_recipe.main(["--checkpoint", str(tmp_path / "run"), "--out", str(out), "--tries", "2",
+                               "--max-steps", "4", "--outcome", "failure"])
+    assert info["episodes_tried"] == 1 and info["outcome_found"] and not info["success"]

@@ -16,7 +16,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from pnp.losses.distillation import DistillationPPOLoss
-from pnp.training.checkpoint import load_checkpoint, load_module
+from pnp.training.checkpoint import load_checkpoint, load_module, resolve_checkpoint
 from pnp.training.collect import desync_episodes
 from pnp.training.hooks import RunHook
 from pnp.training.migration import changed_settings
@@ -135,11 +135,17 @@ class DistillTrainer(Trainer):
                     f"model.obs_norm ({list(theirs.model.critic_cells)}, {theirs.loss.value_norm!r}, "
                     f"{theirs.model.obs_norm}), this run has ({list(mine[0])}, {mine[1]!r}, {mine[2]})")
             load_module(m.critic, self.teacher.critic_state)
+        if cfg.warm_start:  # a student moved to a new teacher or env (legs): its actor and input statistics
+            init = load_checkpoint(resolve_checkpoint(cfg.warm_start, cfg.runs_root))
+            if "distill" not in init["cfg"]:
+                raise ValueError(f"warm_start={cfg.warm_start!r} holds a teacher; a student warm-starts from a "
+                                 f"student's checkpoint (a teacher is distill.teacher)")
+            load_module(m.actor, init["actor"])
         self.carried = init_state(self.env.reset(), m.actor)
         if cfg.collect.desync_episodes:
             self.carried = desync_episodes(self.carried, cfg.env.max_episode_steps)
         for norm, key in self.norms():  # first statistics from the initial layouts
-            if key == STUDENT_OBS or not cfg.distill.critic_from_teacher:
+            if (key == STUDENT_OBS and not cfg.warm_start) or (key == OBS and not cfg.distill.critic_from_teacher):
                 norm.update(self.carried[key])
 
 

@@ -299,6 +299,9 @@ class RunConfig:
     out_dir: Optional[str] = None  # null: the hydra run folder; a pipeline or distillation resumes one with a checkpoint
     runs_root: str = "runs"
     progress: bool = True
+    # A checkpoint that starts this run: a teacher's actor, critic and Adam state; a student's actor
+    # (pnp.distill: a student moved to a new teacher or env, e.g. the legs; the critic as critic_from_teacher says).
+    warm_start: Optional[str] = None
     env: EnvConfig = field(default_factory=EnvConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -315,7 +318,6 @@ class RunConfig:
 @dataclass
 class TrainConfig(RunConfig):
     resume: Any = False  # true/latest: newest runs/**/checkpoint.pt; or a run folder / file
-    warm_start: Optional[str] = None  # checkpoint whose actor, critic and Adam state initialise this run
     # Also its curriculum state. Not for a new task: a slot in the final stage keeps rho = mu.
     warm_start_curriculum: bool = False
     warm_start_fold_constant: bool = False  # blind the nets to inputs that never moved in the source run

@@ -143,6 +143,20 @@ def test_the_critic_starts_as_the_teachers(teacher, tmp_path):
         assert torch.equal(student["critic"][k], v), k
 
 
+def test_a_student_warm_starts_from_a_students_actor(teacher, tmp_path):
+    """warm_start moves a student to a new teacher or env (the legs): its actor, input statistics included."""
+    distill(_cfg(teacher, f"out_dir={tmp_path / 'a'}", "total_iterations=1"))
+    distill(_cfg(teacher, f"out_dir={tmp_path / 'b'}", "total_iterations=0", f"warm_start={tmp_path / 'a'}"))
+    a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt")["actor"] for run in ("a", "b"))
+    assert a.keys() == b.keys() and any("obs_norm" in k for k in a)
+    for k, v in a.items():
+        assert torch.equal(b[k], v), k
+    with pytest.raises(ValueError, match="holds a teacher"):
+        distill(_cfg(teacher, f"out_dir={tmp_path / 'c'}", f"warm_start={teacher}"))
+    with pytest.raises(ConfigCompositionException):  # a teacher's option: a student has no curriculum to carry
+        _cfg(teacher, "warm_start_curriculum=true")
+
+
 def test_beta_anneals_linearly_then_stays():
     kl = _cfg(None, "distill.beta=1.0", "distill.beta_final=0.2", "distill.anneal_iterations=4").distill
     assert [round(beta_at(kl, i), 6) for i in (0, 2, 4, 9)] == [1.0, 0.6, 0.2, 0.2]
@@ -165,7 +179,7 @@ def test_unknown_keys_and_bad_settings_are_refused(teacher, tmp_path):
         distill(_cfg(None, f"out_dir={tmp_path / 'none'}"))
 
 
-@pytest.mark.parametrize("name", ["single", "dual"])
+@pytest.mark.parametrize("name", ["single", "dual", "single_legs"])
 def test_each_experiment_has_its_teachers_settings(name):
     cfg = compose_cfg("distill", [f"distill_experiment={name}"])
     saved = migrate(torch.load(ROOT / cfg.distill.teacher, weights_only=False, map_location="cpu")["cfg"])
@@ -184,6 +198,9 @@ def test_each_experiment_has_its_teachers_settings(name):
     # the lr is fixed: the KL-adaptive one sat at its floor under the teacher's KL
     fixed = lambda optim: {k: v for k, v in optim.items() if k not in ("lr", "lr_schedule")}  # noqa: E731
     assert cfg.optim.lr_schedule == "fixed" and fixed(cfg.optim) == fixed(saved.optim)
+    if cfg.warm_start:  # a student of the same shape
+        source = torch.load(ROOT / cfg.warm_start, weights_only=False, map_location="cpu")["cfg"]
+        assert "distill" in source and source["student"] == dict(cfg.student)
 
 
 def test_evaluate_student_recipe_writes_all_three_runs_and_the_provenance(teacher, tmp_path):

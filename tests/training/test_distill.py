@@ -179,7 +179,7 @@ def test_unknown_keys_and_bad_settings_are_refused(teacher, tmp_path):
         distill(_cfg(None, f"out_dir={tmp_path / 'none'}"))
 
 
-@pytest.mark.parametrize("name", ["single", "dual", "single_legs"])
+@pytest.mark.parametrize("name", ["single", "dual", "single_legs", "dual_legs"])
 def test_each_experiment_has_its_teachers_settings(name):
     cfg = compose_cfg("distill", [f"distill_experiment={name}"])
     saved = migrate(torch.load(ROOT / cfg.distill.teacher, weights_only=False, map_location="cpu")["cfg"])

@@ -99,13 +99,14 @@ def _render_teacher(args) -> dict:
     legs = {"low_level": "learned", "low_level_checkpoint": args.low_level_checkpoint} if args.low_level_checkpoint else {}
     pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1, **legs)
     env, actor, ckpt, folded = pol.env, pol.actor, pol.ckpt, pol.folded
+    want_success = args.outcome == "success"
     for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
         with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
             info = render_episode(env, actor, args.out, every=args.every, max_steps=args.max_steps)
-        if info["success"] == (args.outcome == "success"):
+        if info["success"] == want_success:
             break
     env.close()
-    info["outcome_wanted"], info["outcome_found"] = args.outcome, info["success"] == (args.outcome == "success")
+    info["outcome_wanted"], info["outcome_found"] = args.outcome, info["success"] == want_success
     info.update(provenance(seed=args.seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
                            episodes_tried=k + 1, folded_inputs=folded, low_level=str(pol.cfg.env.low_level),
                            low_level_checkpoint=args.low_level_checkpoint))

@@ -29,6 +29,7 @@ was tried and removed: PPO never sees that coin flip, and it stalled learning to
 from __future__ import annotations
 
 import functools
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -40,8 +41,8 @@ from pnp.sim.backend import Backend, MujocoBackend
 from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.sim.layout import START_RANGE, paired_layouts, sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState, default_reward, geometry,
-    observations, reward_terms, stage_conditions, update_claims,
+    ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState,
+    default_reward, geometry, observations, reward_terms, stage_conditions, update_claims,
 )
 from pnp.task.terms import CONDITIONS, REWARD_TERMS
 
@@ -69,6 +70,22 @@ def _torch_single_threaded(fn):
 _ACTION_LO, _ACTION_HI = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)  # built once, not per step
 
 
+def action_box(bounds: Mapping[str, Sequence[float]] | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The action's (low, high): the paper's (pnp.task ACTION_LOW/HIGH), with the entries
+    ``bounds`` names ({action name: [lo, hi]}) narrowed; a bound outside the paper's is refused."""
+    lo, hi = _ACTION_LO.clone(), _ACTION_HI.clone()
+    for name, pair in (bounds or {}).items():
+        if name not in ACTION_NAMES:
+            raise ValueError(f"action bounds: unknown action {name!r}; actions are {list(ACTION_NAMES)}")
+        pair = [float(x) for x in pair]
+        i = ACTION_NAMES.index(name)
+        if len(pair) != 2 or not ACTION_LOW[i] <= pair[0] < pair[1] <= ACTION_HIGH[i]:
+            raise ValueError(f"action bounds: {name}={pair} must be [lo, hi] with "
+                             f"{ACTION_LOW[i]} <= lo < hi <= {ACTION_HIGH[i]} (the paper's range)")
+        lo[i], hi[i] = pair
+    return lo, hi
+
+
 class RobotEnvBase(EnvBase):
     """What every batched env of this robot shares: seeding, (partial) resets through
     ``_reset_worlds``/``_observe``, action checks, exact-resume state and closing.
@@ -79,6 +96,7 @@ class RobotEnvBase(EnvBase):
 
     batch_locked = True
     _STATE: tuple[str, ...] = ()
+    _action_lo, _action_hi = _ACTION_LO, _ACTION_HI  # PnPEnv may narrow them (action_box)
 
     def _init_worlds(self, num_worlds: int, num_robots: int, max_episode_steps: int, device) -> None:
         """Checks the batch sizes, then sets up the EnvBase over ``num_worlds`` worlds."""
@@ -139,7 +157,7 @@ class RobotEnvBase(EnvBase):
                 worlds = bad.nonzero().squeeze(-1).tolist()
                 raise ValueError(f"('agents', 'action') has NaN or Inf in worlds {worlds}")
         action = action.float()
-        clipped_action = torch.clamp(action, _ACTION_LO, _ACTION_HI)
+        clipped_action = torch.clamp(action, self._action_lo, self._action_hi)
         clipped = (clipped_action != action).any(-1)
         self.clipped_count += int(clipped.sum())
         return clipped_action, clipped
@@ -175,7 +193,8 @@ class PnPEnv(RobotEnvBase):
                  start_range: tuple[float, float] = START_RANGE,
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
                  handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False,
-                 box_mass: tuple[float, float] | None = None):
+                 box_mass: tuple[float, float] | None = None,
+                 action_bounds: Mapping[str, Sequence[float]] | None = None):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if handle_order not in HANDLE_ORDERS:
@@ -187,6 +206,7 @@ class PnPEnv(RobotEnvBase):
         # Evaluation: each reset starts the next trial, whose layout comes from (seed, trial).
         self.paired_trials = bool(paired_trials)
         self.box_mass = None if box_mass is None else tuple(float(x) for x in box_mass)
+        self._action_lo, self._action_hi = action_box(action_bounds)
         self._init_worlds(num_worlds, num_robots, int(round(EPISODE_S / HL_DT)), device)
         self.box_assets = box_assets or (SINGLE_ROBOT_BOXES if num_robots == 1 else DUAL_ROBOT_BOXES)
         self.start_range = tuple(float(x) for x in start_range)
@@ -211,7 +231,7 @@ class PnPEnv(RobotEnvBase):
         R = self.num_robots
         agents = lambda d: Composite(d, shape=(R,))  # noqa: E731
         self.full_action_spec_unbatched = Composite({"agents": agents({
-            "action": Bounded(torch.tensor(ACTION_LOW).expand(R, 8), torch.tensor(ACTION_HIGH).expand(R, 8), shape=(R, 8)),
+            "action": Bounded(self._action_lo.expand(R, 8), self._action_hi.expand(R, 8), shape=(R, 8)),
         })})
         obs = {k: Unbounded(shape=(R, n)) for k, n in OBS_BLOCKS.items()}
         obs["observation"] = Unbounded(shape=(R, sum(OBS_BLOCKS.values())))
@@ -226,10 +246,9 @@ class PnPEnv(RobotEnvBase):
         self.full_done_spec_unbatched = Composite({"done": flag(), "terminated": flag(), "truncated": flag()})
 
     def _neutral_action(self):
-        lo, hi = torch.tensor(ACTION_LOW), torch.tensor(ACTION_HIGH)
         a = torch.zeros(8)
         a[3:6] = torch.tensor([0.75, 0.0, -0.30])  # the default EE pose
-        return a.clamp(lo, hi)
+        return a.clamp(self._action_lo, self._action_hi)
 
     # --- EnvBase hooks -------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

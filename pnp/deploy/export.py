@@ -52,7 +52,8 @@ class DeployedStudent(nn.Module):
     gripper closed iff its logit > 0). ``first_step`` 1 zeroes the state, as the env's
     step count 0 does in training."""
 
-    def __init__(self, net: RecurrentStudentNet):
+    def __init__(self, net: RecurrentStudentNet, low: torch.Tensor | None = None, high: torch.Tensor | None = None):
+        """``low``/``high``: the actor's action bounds (default: the paper's, pnp.task)."""
         super().__init__()
         if not isinstance(net, RecurrentStudentNet):
             raise TypeError(f"DeployedStudent needs a RecurrentStudentNet (student.recurrent_cells > 0), "
@@ -62,7 +63,9 @@ class DeployedStudent(nn.Module):
         self.mlp = _shared_mlp(net.mlp)
         self.head = copy.deepcopy(net.head)
         self.hidden_size, self.n_obs = net.hidden_size, net.gru.input_size
-        low, high = torch.tensor(ACTION_LOW, dtype=torch.float32), torch.tensor(ACTION_HIGH, dtype=torch.float32)
+        low = torch.tensor(ACTION_LOW) if low is None else low
+        high = torch.tensor(ACTION_HIGH) if high is None else high
+        low, high = low.reshape(-1)[-len(ACTION_NAMES):].float(), high.reshape(-1)[-len(ACTION_NAMES):].float()
         self.register_buffer("mid", (high + low) / 2)
         self.register_buffer("half_range", (high - low) / 2)
         is_grip = torch.zeros(len(ACTION_NAMES), dtype=torch.bool)
@@ -84,7 +87,8 @@ def deployed_student(actor) -> DeployedStudent:
     if net is None:
         raise TypeError("this actor has no GRU (a student trained with student.recurrent_cells=0 or a teacher): "
                         "only the recurrent student is exported")
-    return DeployedStudent(net)
+    bounds = actor.module[-1].distribution_kwargs  # the env's action spec it was built on (env.action_bounds)
+    return DeployedStudent(net, bounds["low"], bounds["high"])
 
 
 def export_onnx(student: DeployedStudent, path: str | Path) -> Path:

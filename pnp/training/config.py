@@ -91,6 +91,11 @@ class EnvConfig:
     paired_trials: bool = False
     # [lo, hi] kg: every box's mass drawn uniformly (e.g. the paper's 2.0 kg hardware box); null: the assets'.
     box_mass: Optional[List[float]] = None
+    # Ours (pick-and-place): {action name: [lo, hi]} narrowing the paper's action box (pnp.task
+    # ACTION_LOW/HIGH), e.g. {ee_x: [0.3, 0.85], ee_y: [-0.45, 0.45]}: the EE commands the arm reaches
+    # at a handle's height, so that a handle out of reach is reached by walking. Empty: the paper's.
+    # On the command line: +env.action_bounds.ee_x=[0.3,0.85]
+    action_bounds: Dict[str, List[float]] = field(default_factory=dict)
     locomotion: LocomotionConfig = field(default_factory=LocomotionConfig)  # env.task=locomotion only
     ee_tracking: EETrackingConfig = field(default_factory=EETrackingConfig)  # env.task=ee_tracking only
     # ideal: planar base, IK arm (pnp.sim.executor). learned: legs walked by a locomotion policy

@@ -1,6 +1,8 @@
 """The exported student acts as the PyTorch student does, on observations the env produced."""
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -8,6 +10,7 @@ from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.deploy.export import GRIPPER, OnnxStudent, deployed_student, export_onnx
 from pnp.deploy.student_io import load_student
+from pnp.task import ACTION_LOW, ACTION_NAMES
 from pnp.training.keys import ACTION, STUDENT_OBS
 from pnp.training.recurrent import HIDDEN, HIDDEN_NEXT, carry_state, init_state
 from tests.training._tiny import ROOT
@@ -82,3 +85,14 @@ def test_onnx_refuses_bad_observations(onnx_path):
 def test_a_teacher_is_refused():
     with pytest.raises(ValueError, match="teacher's checkpoint"):
         load_student(ROOT / "results" / "repro_dual_pnp_checkpoint.pt")
+
+
+def test_deployed_module_takes_the_actors_action_bounds(recorded):
+    actor = copy.deepcopy(recorded[0].actor)
+    kwargs = actor.module[-1].distribution_kwargs  # env.action_bounds narrows the spec they come from
+    kwargs["high"] = kwargs["high"].clone()
+    kwargs["high"][..., ACTION_NAMES.index("ee_x")] = 0.85
+    student = deployed_student(actor)
+    i = ACTION_NAMES.index("ee_x")
+    assert float(student.mid[i]) == pytest.approx((0.85 + ACTION_LOW[i]) / 2)
+    assert float(student.half_range[i]) == pytest.approx((0.85 - ACTION_LOW[i]) / 2)

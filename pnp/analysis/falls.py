@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import collections
 
-import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from pnp.studies.ll_carry import value_stats
 from pnp.task import OBS_FIELDS
 from pnp.training.keys import STAGE
 from pnp.training.rollout import FALL, GRABBED
@@ -64,7 +64,7 @@ class Falls:
         for k, v in stats.items():
             self.ring[k][self.t % self.window] = v
         self.valid = (self.valid + 1).clamp(max=self.window)
-        self.stage = agents["stage"].reshape(stats["speed"].shape).long()
+        self.stage = nxt[STAGE].reshape(stats["speed"].shape).long()
         for key in ("speed", "yaw_rate", "track_err"):
             for part, mask in (("carrying", stats["held"]), ("not_carrying", ~stats["held"])):
                 self.everywhere[part][key].append(stats[key][mask])
@@ -88,20 +88,12 @@ class Falls:
         self.valid[done] = 0
 
     def reference(self) -> dict:
-        """Per part (carrying, not): the step count and each statistic's mean and 90th percentile."""
+        """Per part (carrying, not): the robot-step count and each statistic's summary."""
         out = {}
         for part, series in self.everywhere.items():
-            values = {k: torch.cat(v).numpy() if v else np.zeros(0) for k, v in series.items()}
-            out[part] = {"robot_steps": int(len(values["speed"]))} | {
-                k: _quantiles(v) for k, v in values.items()}
+            values = {k: torch.cat(v) if v else torch.zeros(0) for k, v in series.items()}
+            out[part] = {"robot_steps": len(values["speed"])} | {k: value_stats(v) for k, v in values.items()}
         return out
-
-
-def _quantiles(values) -> dict | None:
-    values = np.asarray(values, dtype=float)
-    if not len(values):
-        return None
-    return {"mean": float(values.mean()), "p90": float(np.quantile(values, 0.9)), "samples": int(len(values))}
 
 
 def falls(checkpoint: str, trials: int, seed: int, window: int, **env) -> dict:
@@ -112,8 +104,8 @@ def falls(checkpoint: str, trials: int, seed: int, window: int, **env) -> dict:
     return {**header, "window_steps": window, "falls": len(fallen),
             "falls_by_stage": dict(sorted(by_stage.items())), "falls_while_holding": len(carrying),
             "falls_both_robots": sum(len(r["fell_robots"]) > 1 for r in fallen),
-            "fall_step": _quantiles([r["steps"] for r in fallen]),
-            "before_fall": {k: _quantiles([r[k] for r in fallen if k in r])
+            "fall_step": value_stats(torch.tensor([float(r["steps"]) for r in fallen])),
+            "before_fall": {k: value_stats(torch.tensor([r[k] for r in fallen if k in r]))
                             for k in ("speed_max", "yaw_rate_max", "track_err_mean", "spacing_change")},
             "everywhere": hook.reference(),
             "fall_trials": [{k: r[k] for k in ("trial", "world", "steps", "fell_robots", "stage_per_robot", "held_per_robot",

@@ -65,7 +65,7 @@ class DeployedStudent(nn.Module):
         self.hidden_size, self.n_obs = net.hidden_size, net.gru.input_size
         low = torch.tensor(ACTION_LOW) if low is None else low
         high = torch.tensor(ACTION_HIGH) if high is None else high
-        low, high = low.reshape(-1)[-len(ACTION_NAMES):].float(), high.reshape(-1)[-len(ACTION_NAMES):].float()
+        low, high = (b.reshape(-1, len(ACTION_NAMES))[0].float() for b in (low, high))  # a spec's [R, 8]: robots alike
         self.register_buffer("mid", (high + low) / 2)
         self.register_buffer("half_range", (high - low) / 2)
         is_grip = torch.zeros(len(ACTION_NAMES), dtype=torch.bool)

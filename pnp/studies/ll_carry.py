@@ -28,7 +28,8 @@ from pnp.task.scripted import CARRY, RELEASE, ScriptedPnP
 _GRABBED, _FALL = CONDITIONS.index("object_grabbed"), REWARD_TERMS.index("fall")
 
 
-def _stats(x: torch.Tensor) -> dict:
+def value_stats(x: torch.Tensor) -> dict:
+    """Mean, 90th percentile, max and count of the finite entries of ``x``."""
     x = x[torch.isfinite(x)]
     if not len(x):
         return {"mean": None, "p90": None, "max": None, "samples": 0}
@@ -80,7 +81,7 @@ def dual_carry(make_env: Callable[[int], PnPEnv], episodes: int, max_steps: int)
                 "falls": int(fell.sum()), "falls_while_carrying": int((fell & c).sum()),
                 "grasps_lost_while_carrying": int(lost.sum()),
                 "carry_s_mean": float(carry_steps[c].float().mean() * HL_DT) if c.any() else None,
-                "ee_error_m": _stats(torch.cat(errors) if errors else torch.zeros(0)),
-                "trunk_height_min_m": _stats(trunk_min[c]), "spacing_drift_m": _stats(drift[c])}
+                "ee_error_m": value_stats(torch.cat(errors) if errors else torch.zeros(0)),
+                "trunk_height_min_m": value_stats(trunk_min[c]), "spacing_drift_m": value_stats(drift[c])}
     finally:
         env.close()

@@ -44,7 +44,7 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
                   handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes],
                   paired_trials=bool(env_cfg.paired_trials),
                   box_mass=None if env_cfg.box_mass is None else tuple(env_cfg.box_mass),
-                  action_bounds={k: list(v) for k, v in env_cfg.get("action_bounds", {}).items()})
+                  action_bounds={k: list(v) for k, v in env_cfg.action_bounds.items()})
 
 
 def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
@@ -60,7 +60,7 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
 
 
 def _pnp_only_bounds(env_cfg: DictConfig) -> None:
-    if env_cfg.get("action_bounds"):
+    if env_cfg.action_bounds:
         raise ValueError(f"env.action_bounds={dict(env_cfg.action_bounds)} narrows the pick-and-place action; "
                          f"env.task={env_cfg.task} has its own")
 

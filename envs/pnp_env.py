@@ -41,7 +41,7 @@ from pnp.sim.backend import Backend, MujocoBackend
 from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.sim.layout import START_RANGE, paired_layouts, sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState,
+    ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, GRASP_POSES, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState,
     default_reward, geometry, observations, reward_terms, stage_conditions, update_claims,
 )
 from pnp.task.terms import CONDITIONS, REWARD_TERMS
@@ -194,13 +194,16 @@ class PnPEnv(RobotEnvBase):
                  terminate_on_success: bool = True, backend_options: dict | None = None, device="cpu",
                  handle_order: str = "identity", handle_claim: bool = False, paired_trials: bool = False,
                  box_mass: tuple[float, float] | None = None,
-                 action_bounds: Mapping[str, Sequence[float]] | None = None):
+                 action_bounds: Mapping[str, Sequence[float]] | None = None, grasp_pose: str = "height"):
         if num_robots not in (1, 2):
             raise ValueError(f"num_robots must be 1 or 2, got {num_robots!r}")
         if handle_order not in HANDLE_ORDERS:
             raise ValueError(f"handle_order must be one of {HANDLE_ORDERS}, got {handle_order!r}")
+        if grasp_pose not in GRASP_POSES:
+            raise ValueError(f"grasp_pose must be one of {GRASP_POSES}, got {grasp_pose!r}")
         self.terminate_on_success = bool(terminate_on_success)
         self.handle_order = handle_order
+        self.grasp_pose = str(grasp_pose)  # what gripper_grasp_pose pays (pnp.task.rewards.GRASP_POSES)
         # Each robot keeps the handle it was given at the episode start (pnp.task.update_claims).
         self.handle_claim = bool(handle_claim)
         # Evaluation: each reset starts the next trial, whose layout comes from (seed, trial).
@@ -320,7 +323,7 @@ class PnPEnv(RobotEnvBase):
         cond = stage_conditions(s, g)
         if self.handle_claim:
             self._claim = update_claims(self._claim, g)
-        terms = reward_terms(s, g, action, last_action, cond, frame)
+        terms = reward_terms(s, g, action, last_action, cond, frame, self.grasp_pose)
         blocks = observations(s, g, action, frame, self.handle_order)
         agents = {k: blocks[k] for k in BLOCKS}
         agents["observation"] = torch.cat([blocks[k] for k in BLOCKS], -1)

@@ -14,6 +14,11 @@ APPROACH_RADIUS = 0.5  # m, EE to handle (horizontal); base_approach pays only b
 # m, base to handle (horizontal) where base_stance pays in full / nothing: the default arm pose's
 # EE is 0.75 m ahead of the base; ~1.05 m is the arm's full reach at a handle's height.
 STANCE_M = (0.75, 1.05)
+# What gripper_grasp_pose measures (env.grasp_pose): the EE's height above its handle's axis
+# (our reading of Table II), or its distance to the handle bar (ours). The height alone pays
+# nothing for the horizontal centimetres a grasp needs, which the ready pose's exp(-3 x) hardly
+# tells apart (0.77 at 8.6 cm, 0.90 at 3.5 cm).
+GRASP_POSES = ("height", "bar")
 
 # Constant tensors, built once (CPU, float32).
 _F32 = torch.float32
@@ -29,8 +34,9 @@ _RELEASED = CONDITIONS.index("object_released")
 
 
 def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: torch.Tensor, cond: torch.Tensor,
-                 frame: BaseFrame | None = None) -> torch.Tensor:
-    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.task.terms.REWARD_TERMS``."""
+                 frame: BaseFrame | None = None, grasp_pose: str = "height") -> torch.Tensor:
+    """Float [N, R, len(REWARD_TERMS)] in the order of ``pnp.task.terms.REWARD_TERMS``;
+    ``grasp_pose`` one of :data:`GRASP_POSES`."""
     R = s.ee_pos.shape[1]
     box = lambda x: x.unsqueeze(1).expand(-1, R)  # noqa: E731
     p = action[..., 7]  # the policy's grasp probability (Table II's grab action terms)
@@ -46,7 +52,7 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
     stance = ((STANCE_M[1] - stance) / (STANCE_M[1] - STANCE_M[0])).clamp(0.0, 1.0)
     terms = {
         "gripper_ready_pose": torch.exp(-3 * reach) * g.align,
-        "gripper_grasp_pose": torch.exp(-10 * g.ee_handle[..., 2].abs()) * g.align,
+        "gripper_grasp_pose": torch.exp(-10 * _grasp_pose_dist(g, grasp_pose)) * g.align,
         "object_grabbed": g.grasped.float(),
         "grab_action": torch.where(g.grasped, p, 1 - p),
         "object_height": box(height),
@@ -67,6 +73,14 @@ def reward_terms(s: PnPState, g: Geometry, action: torch.Tensor, last_action: to
         "base_stance": torch.where(unheld, stance, 0.0),
     }
     return torch.stack([terms[n] for n in REWARD_TERMS], -1)
+
+
+def _grasp_pose_dist(g: Geometry, grasp_pose: str) -> torch.Tensor:
+    if grasp_pose == "height":
+        return g.ee_handle[..., 2].abs()
+    if grasp_pose == "bar":
+        return g.bar_dist
+    raise ValueError(f"grasp_pose must be one of {GRASP_POSES}, got {grasp_pose!r}")
 
 
 def action_rate(action: torch.Tensor, last_action: torch.Tensor) -> torch.Tensor:

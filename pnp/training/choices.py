@@ -11,6 +11,7 @@ from pathlib import Path
 # checked where the registry is read.
 Backend = StrEnum("Backend", ["mujoco", "kinematic"])
 HandleOrder = StrEnum("HandleOrder", ["identity", "own_first", "own_last"])
+GraspPose = StrEnum("GraspPose", ["height", "bar"])
 LowLevel = StrEnum("LowLevel", ["ideal", "learned"])
 EpisodeStage = StrEnum("EpisodeStage", ["peak", "final"])
 GraspDist = StrEnum("GraspDist", ["bernoulli", "tanh_normal"])

@@ -44,7 +44,8 @@ def _pnp_env(env_cfg: DictConfig, seed: int) -> EnvBase:
                   handle_claim=bool(env_cfg.handle_claim), box_assets=BOX_SETS[env_cfg.boxes],
                   paired_trials=bool(env_cfg.paired_trials),
                   box_mass=None if env_cfg.box_mass is None else tuple(env_cfg.box_mass),
-                  action_bounds={k: list(v) for k, v in env_cfg.action_bounds.items()})
+                  action_bounds={k: list(v) for k, v in env_cfg.action_bounds.items()},
+                  grasp_pose=str(env_cfg.grasp_pose))
 
 
 def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
@@ -52,21 +53,24 @@ def _ee_tracking_env(env_cfg: DictConfig, seed: int) -> EnvBase:
         raise ValueError(f"env.task=ee_tracking has one robot, got env.num_robots={env_cfg.num_robots}")
     kinematic_options(env_cfg)  # refuses kinematic options on MuJoCo here too
     _ideal_only(env_cfg)
-    _pnp_only_bounds(env_cfg)
+    _pnp_only_options(env_cfg)
     task = env_cfg.ee_tracking
     return EETrackingEnv(num_worlds=int(env_cfg.num_worlds), backend=env_cfg.backend, seed=int(seed),
                          nthread=env_cfg.nthread, track_rule=str(task.track_rule), track_sigma=tuple(task.track_sigma),
                          point_ring=tuple(task.point_ring), terminate_on_success=bool(env_cfg.terminate_on_success))
 
 
-def _pnp_only_bounds(env_cfg: DictConfig) -> None:
+def _pnp_only_options(env_cfg: DictConfig) -> None:
     if env_cfg.action_bounds:
         raise ValueError(f"env.action_bounds={dict(env_cfg.action_bounds)} narrows the pick-and-place action; "
+                         f"env.task={env_cfg.task} has its own")
+    if env_cfg.grasp_pose != "height":
+        raise ValueError(f"env.grasp_pose={env_cfg.grasp_pose!r} is a pick-and-place reward term; "
                          f"env.task={env_cfg.task} has its own")
 
 
 def _locomotion_env(env_cfg: DictConfig, seed: int) -> EnvBase:
-    _pnp_only_bounds(env_cfg)
+    _pnp_only_options(env_cfg)
     if env_cfg.backend != "mujoco":
         raise ValueError(f"env.task=locomotion simulates legs: it needs env.backend=mujoco, got {env_cfg.backend!r}")
     if int(env_cfg.num_robots) != 1:

@@ -41,8 +41,8 @@ from pnp.sim.backend import Backend, MujocoBackend
 from pnp.sim.box import DUAL_ROBOT_BOXES, SINGLE_ROBOT_BOXES, BoxAsset
 from pnp.sim.layout import START_RANGE, paired_layouts, sample_layout
 from pnp.task import (
-    ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, GRASP_POSES, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame, PnPState,
-    default_reward, geometry, observations, reward_terms, stage_conditions, update_claims,
+    ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, GRASP_POSES, HANDLE_ORDERS, HL_DT, OBS_BLOCKS, BaseFrame,
+    PnPState, default_reward, geometry, observations, reward_terms, stage_conditions, update_claims,
 )
 from pnp.task.terms import CONDITIONS, REWARD_TERMS
 

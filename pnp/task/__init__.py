@@ -32,7 +32,9 @@ from pnp.task.geometry import (
     update_claims, yaw_rotation,
 )
 from pnp.task.observations import HANDLE_ORDERS, OBS_BLOCKS, OBS_FIELDS, ego_block, observations
-from pnp.task.rewards import GRASP_POSES, MAX_OBJ_HEIGHT, collisions, action_rate, default_reward, joint_limit_excess, reward_terms
+from pnp.task.rewards import (
+    GRASP_POSES, MAX_OBJ_HEIGHT, collisions, action_rate, default_reward, joint_limit_excess, reward_terms,
+)
 from pnp.task.state import ACTION_HIGH, ACTION_LOW, ACTION_NAMES, EPISODE_S, HL_DT, PnPState
 
 __all__ = [
@@ -44,7 +46,8 @@ __all__ = [
     # stage conditions
     "LIFT_HEIGHT", "READY_ALIGN", "READY_XY", "READY_Z", "stage_conditions",
     # reward terms
-    "GRASP_POSES", "MAX_OBJ_HEIGHT", "collisions", "action_rate", "default_reward", "joint_limit_excess", "reward_terms",
+    "GRASP_POSES", "MAX_OBJ_HEIGHT", "collisions", "action_rate", "default_reward", "joint_limit_excess",
+    "reward_terms",
     # observations
     "HANDLE_ORDERS", "OBS_BLOCKS", "OBS_FIELDS", "ego_block", "observations",
 ]

@@ -67,7 +67,8 @@ def test_an_unknown_kernel_is_refused_by_name():
 
 
 def test_the_config_schema_carries_it_and_other_tasks_refuse_it():
-    cfg = OmegaConf.merge(OmegaConf.structured(EnvConfig), {"backend": "kinematic", "num_worlds": 2, "grasp_pose": "bar"})
+    cfg = OmegaConf.merge(OmegaConf.structured(EnvConfig),
+                          {"backend": "kinematic", "num_worlds": 2, "grasp_pose": "bar"})
     env = make_env(cfg, OmegaConf.structured(CurriculumConfig), 0)
     assert env.base_env.grasp_pose == "bar"
     with pytest.raises(Exception, match="grasp_pose"):

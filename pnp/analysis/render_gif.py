@@ -97,7 +97,8 @@ def main(argv=None):
 def _render_teacher(args) -> dict:
     path = resolve_checkpoint(args.checkpoint, "runs")
     legs = {"low_level": "learned", "low_level_checkpoint": args.low_level_checkpoint} if args.low_level_checkpoint else {}
-    pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1, **legs)
+    # Not paired: a paired env's reset() restarts at trial 0, so every try would replay one layout.
+    pol = load_policy(path, 1, args.seed, backend="mujoco", nthread=1, paired_trials=False, **legs)
     env, actor, ckpt, folded = pol.env, pol.actor, pol.ckpt, pol.folded
     want_success = args.outcome == "success"
     for k in range(args.tries):  # each reset draws the next layout from the env's seeded RNG
@@ -109,5 +110,5 @@ def _render_teacher(args) -> dict:
     info["outcome_wanted"], info["outcome_found"] = args.outcome, info["success"] == want_success
     info.update(provenance(seed=args.seed, policy=str(path), checkpoint_iteration=int(ckpt["counters"]["iteration"]),
                            episodes_tried=k + 1, folded_inputs=folded, low_level=str(pol.cfg.env.low_level),
-                           low_level_checkpoint=args.low_level_checkpoint))
+                           low_level_checkpoint=args.low_level_checkpoint or pol.cfg.env.low_level_checkpoint))
     return info

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 from omegaconf import OmegaConf
+from omegaconf.errors import ValidationError
 
 import pnp.task as T
 from pnp.envs.pnp_env import PnPEnv
@@ -71,7 +72,7 @@ def test_the_config_schema_carries_it_and_other_tasks_refuse_it():
                           {"backend": "kinematic", "num_worlds": 2, "grasp_pose": "bar"})
     env = make_env(cfg, OmegaConf.structured(CurriculumConfig), 0)
     assert env.base_env.grasp_pose == "bar"
-    with pytest.raises(Exception, match="grasp_pose"):
+    with pytest.raises(ValidationError, match="grasp_pose"):
         OmegaConf.merge(OmegaConf.structured(EnvConfig), {"grasp_pose": "xy"})
     cfg.task = "ee_tracking"
     with pytest.raises(ValueError, match="grasp_pose"):

@@ -20,14 +20,14 @@ test-all: $(STAMP)
 	WANDB_MODE=offline MUJOCO_GL=egl $(PY) -m pytest -q -m ""
 
 # Main job: the single-robot pipeline from random weights (recipes/config/experiment/
-# single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then a checkpoint chosen among
+# single_pnp_pipeline_bar.yaml over single_pnp_pipeline.yaml: kinematic phases, then MuJoCo), then a checkpoint chosen among
 # the last phase's snapshots on the selection seeds 777 and 778, then 500 paired trials of it
 # on the reporting seed (docs/guide/evaluation.md) into runs/main (results/ holds only quoted
 # figures). Ctrl-C checkpoints; re-running resumes. SEED=k trains with seed k (else the
 # schema's); the seeds of one commit: recipes/seed_study.py.
 RUN ?= runs/main
 train: $(STAMP)
-	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline out_dir=$(RUN) $(if $(SEED),seed=$(SEED)) $(ARGS)
+	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline_bar out_dir=$(RUN) $(if $(SEED),seed=$(SEED)) $(ARGS)
 	$(PY) recipes/select_checkpoint.py run=$(RUN)
 	$(PY) recipes/evaluate.py checkpoint=$(RUN) selected=true seed=reporting out=$(RUN)/eval_single_pnp.json
 

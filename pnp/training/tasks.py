@@ -15,7 +15,7 @@ from pnp.envs.locomotion_env import LocomotionEnv
 from pnp.envs.pnp_env import PnPEnv
 from pnp.legs.locomotion import locomotion_reward_config, locomotion_stage_graph
 from pnp.task.stage_graph import StageGraph, pnp_default_reward_config, pnp_default_stage_graph
-from pnp.training.config import EETrackingConfig, KinematicOptions
+from pnp.training.config import EETrackingConfig, EnvConfig, KinematicOptions
 from pnp.training.keys import REWARD, STAGE_ONE_HOT
 from pnp.training.low_level import LOW_LEVELS, learned_backend
 from pnp.transforms import StageRewardSchedule, StageTransition, make_reward_schedule
@@ -64,7 +64,7 @@ def _pnp_only_options(env_cfg: DictConfig) -> None:
     if env_cfg.action_bounds:
         raise ValueError(f"env.action_bounds={dict(env_cfg.action_bounds)} narrows the pick-and-place action; "
                          f"env.task={env_cfg.task} has its own")
-    if env_cfg.grasp_pose != "height":
+    if env_cfg.grasp_pose != EnvConfig.grasp_pose:  # the schema's default: Table II as we read it
         raise ValueError(f"env.grasp_pose={env_cfg.grasp_pose!r} is a pick-and-place reward term; "
                          f"env.task={env_cfg.task} has its own")
 

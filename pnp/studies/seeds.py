@@ -35,6 +35,13 @@ def _load(run: Path, eval_name: str) -> dict:
     return {**result, "eval_file": str(path)}
 
 
+def _machines(result: dict) -> list[str] | None:
+    """The CPUs a seed trained on (its launches'; None: not recorded). Wall time is per machine
+    kind: the same phases ran ~1.5x slower on an Intel Xeon than on an AMD EPYC here."""
+    launches = result.get("pipeline_launches")
+    return sorted({entry["machine"] for entry in launches}) if launches else None
+
+
 def goal_checks(seeds: dict, summary: dict, commits: list[str], goals: dict) -> dict:
     """Each goal with the measured value and whether it is met (``None``: not measured)."""
     def check(value, limit, at_least: bool) -> dict:
@@ -66,7 +73,8 @@ def seed_study(runs: list[Path], eval_name: str, goals: dict, command: str) -> d
     trials = {r["trials"] for r in evals.values()}
     if len(trials) != 1:
         raise ValueError(f"the seeds were evaluated on different trial counts {sorted(trials)}: not paired")
-    seeds = {str(seed): {k: r.get(k) for k in _PER_SEED} | {"eval_file": r["eval_file"]} for seed, r in evals.items()}
+    seeds = {str(seed): {k: r.get(k) for k in _PER_SEED} | {"eval_file": r["eval_file"], "launch_machines": _machines(r)}
+             for seed, r in evals.items()}
     rates = [s["success_rate"] for s in seeds.values()]
     solved = [[rec[1] for rec in r["trial_records"]] for r in evals.values()]
     commits = sorted({c for s in seeds.values() for c in s["launch_commits"]})
@@ -92,13 +100,14 @@ def _millions(frames: int | None) -> str:
 
 def seeds_markdown(result: dict, title: str) -> str:
     rows = "".join(f"| {seed} | {100 * s['success_rate']:.1f} | {s['train_wall_s'] / 3600:.2f} | "
-                   f"{_millions(s['mujoco_frames'])} | {s['from_empty_folder']} |\n"
+                   f"{_millions(s['mujoco_frames'])} | {s['from_empty_folder']} | "
+                   f"{' + '.join(s['launch_machines'] or ['not recorded'])} |\n"
                    for seed, s in result["seeds"].items())
     goals = "".join(f"- {name}: {'met' if g['met'] else ('not measured' if g['met'] is None else 'NOT met')}"
                     + (f" ({g['measured']} against {g['goal']})" if "goal" in g else "") + "\n"
                     for name, g in result["goals"].items())
-    return (f"# {title}\n\n| Seed | Success (%) | Training (h) | MuJoCo frames (M) | From an empty folder |\n"
-            f"| --- | --- | --- | --- | --- |\n{rows}\n"
+    return (f"# {title}\n\n| Seed | Success (%) | Training (h) | MuJoCo frames (M) | From an empty folder | "
+            f"Trained on |\n| --- | --- | --- | --- | --- | --- |\n{rows}\n"
             f"Mean {100 * result['success_rate_mean']:.1f} %, worst {100 * result['success_rate_worst']:.1f} %, "
             f"spread {100 * result['success_rate_spread']:.1f} points over {result['num_seeds']} seeds, "
             f"{result['trials_per_seed']} paired trials each on seed {result['reporting_seed']}; "

@@ -11,13 +11,14 @@ from pnp.training.protocol import REPORTING_SEED
 from tests.training._tiny import compose_cfg
 
 
-def _eval(folder, seed, solved, wall_s=9000.0, mujoco=20_000_000, empty=True, commits=("abc1234",)):
+def _eval(folder, seed, solved, wall_s=9000.0, mujoco=20_000_000, empty=True, commits=("abc1234",), machines=()):
     folder.mkdir(parents=True)
     result = {"seed": REPORTING_SEED, "train_seed": seed, "trials": len(solved),
               "success_rate": sum(solved) / len(solved), "completion_time_mean_s": 10.0,
               "failure_causes": {"timeout": len(solved) - sum(solved)}, "train_wall_s": wall_s,
               "mujoco_frames": mujoco, "env_frames": mujoco + 10, "from_empty_folder": empty,
               "launch_commits": list(commits), "checkpoint": str(folder / "c.pt"), "checkpoint_iteration": 5,
+              "pipeline_launches": [{"commit": commits[0], "machine": m} for m in machines],
               "phases": [{"name": "a"}], "trial_records": [[i, int(s), 50, None] for i, s in enumerate(solved)]}
     (folder / "eval_single_pnp.json").write_text(json.dumps(result))
     return folder
@@ -54,3 +55,13 @@ def test_two_commits_an_unknown_folder_and_a_repeated_seed_are_said(tmp_path):
     assert by_file["seeds"]["1"]["eval_file"] == str(runs[1] / "eval_single_pnp.json")
     with pytest.raises(FileNotFoundError, match="no evaluation of this seed's run"):
         seed_study([tmp_path / "missing"], "eval_single_pnp.json", _goals(), "cmd")
+
+
+def test_each_seed_names_the_machines_it_trained_on(tmp_path):
+    runs = [_eval(tmp_path / "s0", 0, [1, 0], machines=("Intel Xeon", "AMD EPYC", "Intel Xeon")),
+            _eval(tmp_path / "s1", 1, [1, 1])]  # a folder older than the launch records
+    result = seed_study(runs, "eval_single_pnp.json", _goals(), "cmd")
+    assert result["seeds"]["0"]["launch_machines"] == ["AMD EPYC", "Intel Xeon"]
+    assert result["seeds"]["1"]["launch_machines"] is None
+    table = seeds_markdown(result, "t")
+    assert "| AMD EPYC + Intel Xeon |" in table and "| not recorded |" in table

@@ -3,6 +3,7 @@ TorchRL transforms) and the PPO update, for any training configuration.
 
     python recipes/analyze/profile_iteration.py experiment=single_pnp_pipeline iterations=3 out=runs/profile.json
     python recipes/analyze/profile_iteration.py backend=mujoco env.num_worlds=1024 collect.frames_per_batch=16384
+    python recipes/analyze/profile_iteration.py resume=runs/main/5_mujoco/checkpoint.pt threads=1/2
 
 Arguments are those of recipes/train.py (hydra overrides) plus ``iterations`` (timed after
 one untimed warm-up iteration), ``out`` and ``threads``: torch's thread counts for collection
@@ -11,6 +12,9 @@ process and reported with its ratio to the first. MuJoCo's pool runs on ``env.nt
 On MuJoCo the physics of each timed iteration is replayed through raw ``mujoco.rollout``
 (same models, states and controls) right after it: ``ratio_to_raw_physics`` is raw seconds
 over iteration seconds (1.0: training costs what its physics costs, and nothing more).
+With ``resume=<checkpoint>`` the run's own settings, weights and worlds are profiled where it
+stopped (nothing is written to its folder): a trained policy's grasps and carries cost MuJoCo
+~2x the contacts of a fresh policy's first steps, so only that measures a phase as it trains.
 """
 from __future__ import annotations
 
@@ -23,23 +27,25 @@ from hydra import compose, initialize_config_dir
 from tensordict.nn import InteractionType, set_interaction_type
 
 from pnp.analysis.benchmark_env import record_physics, replay_raw
+from pnp.training.checkpoint import restore_training_state
 from pnp.training.choices import RECIPES_CONFIG
 from pnp.training.config import register
 from pnp.training.device import policy_step, training_device
 from pnp.training.ppo import ppo_update
 from pnp.training.provenance import provenance
-from pnp.training.trainer import make_training
+from pnp.training.trainer import make_training, resume_config
 
 
 
-def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1) -> dict:
+def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int = 1, ckpt: dict | None = None) -> dict:
     torch.manual_seed(int(cfg.seed))
     env, models, loss = make_training(cfg)
     device = training_device(cfg.device)
     loss.to(device)  # as the trainer: the networks and the update on cfg.device, the env on the CPU
     optim = torch.optim.Adam(loss.parameters(), lr=float(cfg.optim.lr))
     steps = max(1, int(cfg.collect.frames_per_batch) // env.base_env.num_worlds)
-    carried, times = env.reset(), {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
+    carried = env.reset() if ckpt is None else restore_training_state(ckpt, env, models, optim)
+    times = {"policy_s": 0.0, "env_step_s": 0.0, "ppo_update_s": 0.0}
     phys = env.base_env.backend.physics if cfg.env.backend == "mujoco" else None
     raw_s = 0.0
     for it in range(iterations + 1):
@@ -70,7 +76,9 @@ def profile(cfg, iterations: int, collect_threads: int = 1, update_threads: int 
     env.close()
     total = sum(times.values())
     raw = {} if phys is None else {"raw_physics_s": raw_s, "ratio_to_raw_physics": raw_s / total}
-    return {"collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
+    return {"resumed_from": None if ckpt is None else str(cfg.resume),
+            "resumed_iteration": None if ckpt is None else int(ckpt["counters"]["iteration"]),
+            "collect_threads": collect_threads, "update_threads": update_threads, "backend": cfg.env.backend,
             "device": str(device), "num_worlds": int(cfg.env.num_worlds), "num_robots": int(cfg.env.num_robots),
             "frames_per_iteration": steps * env.base_env.num_worlds, "iterations_timed": iterations,
             "seconds_per_iteration": total, **times, **{k[:-2] + "_share": v / total for k, v in times.items()},
@@ -82,13 +90,14 @@ def main(argv: list[str]) -> dict:
             if a.split("=", 1)[0] in ("iterations", "out", "threads")}
     with initialize_config_dir(config_dir=RECIPES_CONFIG, version_base="1.3"):
         cfg = compose("train", overrides=[a for a in argv if a.split("=", 1)[0] not in opts])
+    cfg, ckpt = resume_config(cfg)  # with resume=: the run's settings, only RESUME_OVERRIDES from the command
     pairs = [pair.split("/") for pair in opts.get("threads", "1/1").split(",")]
     if not all(len(pair) == 2 and all(n.isdigit() and int(n) >= 1 for n in pair) for pair in pairs):
         raise ValueError(f"threads={opts['threads']!r}: expected collect/update pairs such as 1/1,1/2")
     pairs = [(int(c), int(u)) for c, u in pairs]
     before = torch.get_num_threads()
     try:
-        rows = [profile(cfg, int(opts.get("iterations", 3)), *pair) for pair in pairs]
+        rows = [profile(cfg, int(opts.get("iterations", 3)), *pair, ckpt=ckpt) for pair in pairs]
     finally:
         torch.set_num_threads(before)
     for row in rows:

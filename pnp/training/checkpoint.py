@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 
 _FIRST = "mlp.params.0.weight"
 
@@ -127,3 +128,31 @@ def adapt_curriculum(state: dict, num_worlds: int, num_robots: int) -> dict:
             v = v.clone()
         out[k] = v
     return out
+
+
+def conform_to_spec(carried: TensorDictBase, spec) -> list:
+    """Entries of ``carried`` whose shape differs from ``spec``'s set to the spec's zeros, in
+    place; returns their keys. A checkpoint's carried step holds every observation entry,
+    and one that grew since (a reward term added) could not be stacked with new steps."""
+    zero, stale = spec.zero(), []
+    have = set(carried.keys(True, True))
+    for key in zero.keys(True, True):
+        if key in have and carried[key].shape != zero[key].shape:
+            carried[key] = zero[key]
+            stale.append(key)
+    return stale
+
+
+def restore_training_state(ckpt: dict, env, models, optim: torch.optim.Optimizer):
+    """A run's state where its checkpoint left it: weights, Adam, curriculum, every world's
+    physics and the carried step the next collection starts from (returned)."""
+    models.actor.load_state_dict(ckpt["actor"])
+    models.critic.load_state_dict(ckpt["critic"])
+    optim.load_state_dict(ckpt["optim"])
+    env.transform.load_state_dict(ckpt["curriculum"])
+    env.base_env.set_state(ckpt["env"])
+    carried = ckpt["carried"]
+    stale = conform_to_spec(carried, env.observation_spec)
+    if stale:
+        print(f"resume: the checkpoint's last step has {stale} in another shape (an entry added since): zeros")
+    return carried

@@ -25,8 +25,8 @@ from tqdm import tqdm
 from pnp.losses.mappo import PopArtMAPPOLoss
 from pnp.baselines.per_stage import baseline_loss, method_hooks, use_baseline_schedule
 from pnp.training.checkpoint import (
-    adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, rng_state, save_checkpoint,
-    seed_everything, set_rng_state,
+    adapt_curriculum, load_checkpoint, load_module, load_optimiser, resolve_checkpoint, restore_training_state, rng_state,
+    save_checkpoint, seed_everything, set_rng_state,
 )
 from pnp.training.collect import collect, desync_episodes, episode_metrics
 from pnp.training.device import training_device
@@ -152,19 +152,6 @@ class StopOnSignal:
         self._old = {}
 
 
-def conform_to_spec(carried: TensorDictBase, spec) -> list:
-    """Entries of ``carried`` whose shape differs from ``spec``'s set to the spec's zeros, in
-    place; returns their keys. A checkpoint's carried step holds every observation entry,
-    and one that grew since (a reward term added) could not be stacked with new steps."""
-    zero, stale = spec.zero(), []
-    have = set(carried.keys(True, True))
-    for key in zero.keys(True, True):
-        if key in have and carried[key].shape != zero[key].shape:
-            carried[key] = zero[key]
-            stale.append(key)
-    return stale
-
-
 def truncate_metrics(path: Path, iteration: int) -> None:
     """Drop lines logged after the checkpoint (a run killed between checkpoints)."""
     if path.is_file():
@@ -248,16 +235,7 @@ class Trainer:
             self.wandb_id = self.logger.experiment.id
 
     def _restore(self, ckpt: dict) -> None:
-        m = self.models
-        m.actor.load_state_dict(ckpt["actor"])
-        m.critic.load_state_dict(ckpt["critic"])
-        self.optim.load_state_dict(ckpt["optim"])
-        self.env.transform.load_state_dict(ckpt["curriculum"])
-        self.env.base_env.set_state(ckpt["env"])
-        self.carried = ckpt["carried"]
-        stale = conform_to_spec(self.carried, self.env.observation_spec)
-        if stale:
-            print(f"resume: the checkpoint's last step has {stale} in another shape (an entry added since): zeros")
+        self.carried = restore_training_state(ckpt, self.env, self.models, self.optim)
         self.counters = dict(ckpt["counters"])
         set_rng_state(ckpt["rng"])
         for hook in self.hooks:

@@ -104,6 +104,16 @@ def test_profile_iteration_compares_thread_splits(tmp_path):
         profile_iteration.main(["backend=kinematic", "threads=1-2"])
 
 
+def test_profile_iteration_resumes_a_run_where_it_stopped_and_leaves_its_folder_alone(tmp_path):
+    tiny_train(tmp_path / "run", "total_iterations=2")
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "run").iterdir()}
+    out = profile_iteration.main([f"resume={tmp_path / 'run'}/checkpoint.pt", "env.num_worlds=7", "iterations=1",
+                                  f"out={tmp_path / 'p.json'}"])
+    assert out["resumed_from"] == str(tmp_path / "run" / "checkpoint.pt") and out["resumed_iteration"] == 2
+    assert out["num_worlds"] == 4 and out["frames_per_iteration"] == 40  # the run's settings, not the command's
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "run").iterdir()} == before
+
+
 def test_scaling_profiles_each_thread_count_against_the_first(tmp_path):
     tiny = ["env.num_worlds=4", "collect.frames_per_batch=16", "collect.minibatch_size=8", "model.actor_cells=[16]",
             "model.critic_cells=[16]"]

@@ -16,7 +16,8 @@ from pnp.training.keys import ACTION, ROLL_IN
 from pnp.training.models import AgentNet, dist_from_params, make_models
 from pnp.training.ppo import ppo_update
 from pnp.training.tasks import make_env
-from pnp.training.trainer import conform_to_spec, make_loss, resume_config
+from pnp.training.checkpoint import conform_to_spec
+from pnp.training.trainer import make_loss, resume_config
 from tests.training._tiny import TINY, compose_cfg, tiny_train
 
 

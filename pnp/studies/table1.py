@@ -51,6 +51,7 @@ from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E40
 from pnp.studies.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
 from pnp.studies.table1_report import markdown  # noqa: E402
+from pnp.studies.table1_tuning import AS_BUILT, check_tuning, run_name, tune, with_candidate  # noqa: E402
 from pnp.training.trainer import make_training  # noqa: E402
 
 register()
@@ -80,12 +81,12 @@ def kinematic_phases(tcfg: DictConfig) -> list[str]:
     return names
 
 
-def train_config(cfg: DictConfig, method: str, seed: int) -> tuple[DictConfig, DictConfig]:
+def train_config(cfg: DictConfig, method: str, seed: int, candidate: str = AS_BUILT) -> tuple[DictConfig, DictConfig]:
     """The run's config (the kinematic phases only unless ``seed`` is in ``cfg.mujoco_seeds``)
-    and the full pipeline's (for the budget)."""
-    run = Path(cfg.runs_dir) / f"{method}_s{seed}"
+    and the full pipeline's (for the budget), with the tuning ``candidate``'s overrides."""
+    run = Path(cfg.runs_dir) / run_name(method, candidate, seed)
     overrides = [f"experiment=table1_{method}", *cfg.train, f"seed={seed}", f"out_dir={run}"]
-    full = _compose(overrides)
+    full = with_candidate(_compose(overrides), cfg.tuning.candidates, candidate)
     if seed in cfg.mujoco_seeds:
         return full, full
     kinematic = full.copy()
@@ -258,11 +259,12 @@ def method_parameters(tcfg: DictConfig) -> dict[str, int]:
     return parameter_count(models.actor_net, models.critic_net)
 
 
-def train_command(cfg: DictConfig, method: str, kinematic: list[str]) -> str:
+def train_command(cfg: DictConfig, method: str, kinematic: list[str], candidate: str = AS_BUILT) -> str:
     extra = "".join(f" {o}" for o in cfg.train)
-    run = f"{cfg.runs_dir}/{method}_s<seed>"
+    run = f"{cfg.runs_dir}/{run_name(method, candidate, '<seed>')}"
+    tuned = "" if candidate == AS_BUILT else f" (+ tuning.candidates.{candidate}'s phase overrides)"
     return (f"python recipes/train.py experiment=table1_{method}{extra} seed=<seed> out_dir={run}"
-            f" (seeds not in {list(cfg.mujoco_seeds)}: + pipeline=[{','.join(kinematic)}])")
+            f" (seeds not in {list(cfg.mujoco_seeds)}: + pipeline=[{','.join(kinematic)}]){tuned}")
 
 
 def summary_over_seeds(evals: list[dict], trials: int, backend: str) -> dict:
@@ -279,12 +281,13 @@ def train(tcfg: DictConfig) -> None:
         raise SystemExit(f"stopped during {tcfg.out_dir} (a signal or the wall-time limit); rerun to resume")
 
 
-def run_seed(cfg: DictConfig, method: str, seed: int) -> tuple[dict, list[dict], DictConfig, list]:
+def run_seed(cfg: DictConfig, method: str, seed: int, candidate: str = AS_BUILT
+             ) -> tuple[dict, list[dict], DictConfig, list]:
     """Train (or resume, or skip) one run and evaluate it: its record, its kinematic rows, its
     full config and where its kinematic phases start. A finished run's rows and evaluations
     are kept in ``cfg.records_dir`` and reused while the run's and evaluations' settings hold."""
-    tcfg, full = train_config(cfg, method, seed)
-    path = Path(cfg.records_dir) / f"{method}_s{seed}.json"
+    tcfg, full = train_config(cfg, method, seed, candidate)
+    path = Path(cfg.records_dir) / f"{run_name(method, candidate, seed)}.json"
     evals = {"eval_kinematic": OmegaConf.to_container(cfg.eval_kinematic, resolve=True)}
     if seed in cfg.mujoco_seeds:
         evals["eval"] = OmegaConf.to_container(cfg.eval, resolve=True)
@@ -324,10 +327,12 @@ def run_table1(cfg: DictConfig) -> dict:
         raise ValueError(f"ours={cfg.ours!r} is not among methods {list(cfg.methods)}")
     if not set(cfg.mujoco_seeds) <= set(cfg.seeds):
         raise ValueError(f"mujoco_seeds={list(cfg.mujoco_seeds)} must be among seeds={list(cfg.seeds)}")
+    check_tuning(cfg)
+    tuning = {method: tune(cfg, method, run_seed) for method in cfg.methods}  # the same candidates for each
     done = {}  # seed by seed, every method: each finished seed is a complete row of the comparison
     for seed in cfg.seeds:
         for method in cfg.methods:
-            done[method, int(seed)] = run_seed(cfg, method, int(seed))
+            done[method, int(seed)] = run_seed(cfg, method, int(seed), tuning[method]["chosen"])
     methods, curves, budgets = {}, {}, {}
     for method in cfg.methods:
         seeds, curves[method] = {}, {}
@@ -344,7 +349,8 @@ def run_table1(cfg: DictConfig) -> dict:
             "kinematic": summary_over_seeds([s["eval_kinematic"] for s in seeds.values()],
                                             int(cfg.eval_kinematic.trials), str(cfg.eval_kinematic.backend)),
             "budget_frames": budgets[method][0], "kinematic_budget_frames": budgets[method][1],
-            "command": train_command(cfg, method, kinematic_phases(full)), "parameters": method_parameters(full),
+            "command": train_command(cfg, method, kinematic_phases(full), tuning[method]["chosen"]),
+            "parameters": method_parameters(full), "tuning": tuning[method],
         }
     keys = [f"frames_to_{label(m, float(v))}" for m, v in cfg.thresholds.items()]
     kin_budget = next(iter(budgets.values()))[1]  # the same for every method (checked above)

@@ -55,4 +55,11 @@ def markdown(doc: dict) -> str:
             + f"; execution time ratio (ours over the most successful "
                 f"baseline's, MuJoCo): {_num(doc['execution_time_ratio'])}, kinematic: "
                 f"{_num(doc['execution_time_ratio_kinematic'])}."]
+    tuned = {m: v["tuning"] for m, v in doc["methods"].items() if v.get("tuning", {}).get("configs_tried", 1) > 1}
+    if tuned:
+        out += ["", "Tuning: each method's configuration chosen from the same candidates on selection trials "
+                    "(kinematic success rate per candidate):", ""]
+        out += [f"- {NAMES.get(m, m)}: chose {t['chosen']} of " + ", ".join(
+                    f"{name} {_pct(c['success_rate'])} %" for name, c in t["candidates"].items())
+                + f" (seed {t['selection_seed']}, {t['trials']} trials)" for m, t in tuned.items()]
     return "\n".join(out) + "\n"

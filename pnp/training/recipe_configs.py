@@ -152,6 +152,13 @@ class Table1Eval:
 
 
 @dataclass
+class Table1Tuning:
+    seed: int = MISSING  # the candidates' training seed: none of the reported seeds
+    candidates: Dict[str, Any] = MISSING  # name -> {phase: {override key: value}}; as_built first
+    eval: Table1Eval = field(default_factory=Table1Eval)  # selection trials
+
+
+@dataclass
 class Table1Config:
     methods: List[str] = MISSING
     ours: str = MISSING
@@ -165,6 +172,7 @@ class Table1Config:
     mujoco_seeds: List[int] = MISSING
     eval_kinematic: Table1Eval = field(default_factory=Table1Eval)
     eval: Table1Eval = field(default_factory=Table1Eval)
+    tuning: Table1Tuning = field(default_factory=Table1Tuning)
     train: List[str] = MISSING
 
 

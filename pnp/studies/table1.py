@@ -51,6 +51,7 @@ from pnp.training.rollout import load_policy, run_trials, summarise  # noqa: E40
 from pnp.studies.run_records import compact, reuse_or_finish  # noqa: E402
 from pnp.training.stage_ensemble import parameter_count  # noqa: E402
 from pnp.studies.table1_report import markdown  # noqa: E402
+from pnp.studies.ratio_ci import table1_intervals  # noqa: E402
 from pnp.studies.table1_tuning import AS_BUILT, check_tuning, run_name, tune, with_candidate  # noqa: E402
 from pnp.training.trainer import make_training  # noqa: E402
 
@@ -361,6 +362,8 @@ def run_table1(cfg: DictConfig) -> dict:
     phases = sorted(set.intersection(*starts)) if starts else []
     pngs = plot_curves(curves, kin_budget, int(cfg.curve_bins), phases, out)
     doc = {"methods": methods, "efficiency_ratio": r["efficiency"].get(keys[0]), "efficiency_ratios": r["efficiency"],
+           **table1_intervals(methods, cfg.ours, keys[0], r["best_baseline"][keys[0]],
+                              r["best_baseline"]["execution_time"]),
            "efficiency_ratios_at_least": r["efficiency_at_least"],
            "execution_time_ratio": r["execution_time"], "execution_time_ratio_kinematic": r_kin["execution_time"],
            "best_baselines": {**r["best_baseline"], "execution_time_kinematic": r_kin["best_baseline"]["execution_time"]},

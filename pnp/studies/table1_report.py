@@ -25,6 +25,11 @@ def _num(x) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
+def _ci(doc: dict, key: str) -> str:
+    ci = doc.get(key)
+    return "" if ci is None else f" (95 % over seeds: {ci[0]:.2f}-{ci[1]:.2f})"
+
+
 def markdown(doc: dict) -> str:
     """The comparison ``doc`` (``recipes/table1.py``'s JSON) as Markdown tables."""
     first = next(iter(doc["methods"].values()))
@@ -50,10 +55,11 @@ def markdown(doc: dict) -> str:
         out.append(f"| {NAMES.get(method, method)} | " + " | ".join(_frames(m["seeds"], k) for k in keys) + " |")
     least = doc["efficiency_ratios_at_least"]
     out += ["", f"Efficiency ratio (the best baseline's frames over ours, first threshold): "
-                f"{_num(doc['efficiency_ratio'])}; counting a seed that never got there as the kinematic "
+                f"{_num(doc['efficiency_ratio'])}{_ci(doc, 'efficiency_ratio_ci95')}; counting a seed that never got there as the kinematic "
                 f"budget, at least " + " and ".join(f"{_num(least[k])} ({k.removeprefix('frames_to_')})" for k in keys)
             + f"; execution time ratio (ours over the most successful "
-                f"baseline's, MuJoCo): {_num(doc['execution_time_ratio'])}, kinematic: "
+                f"baseline's, MuJoCo): {_num(doc['execution_time_ratio'])}{_ci(doc, 'execution_time_ratio_ci95')}, "
+                f"kinematic: "
                 f"{_num(doc['execution_time_ratio_kinematic'])}."]
     tuned = {m: v["tuning"] for m, v in doc["methods"].items() if v.get("tuning", {}).get("configs_tried", 1) > 1}
     if tuned:

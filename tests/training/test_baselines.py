@@ -292,7 +292,8 @@ def _check_form(doc, methods, seeds):
         for key in ("trials", "backend", "success_rate", "completion_time_mean_s", "completion_time_std_s",
                     "budget_frames", "command", "parameters"):
             assert key in m, key
-    for key in ("efficiency_ratio", "execution_time_ratio", "commit", "machine"):
+    for key in ("efficiency_ratio", "execution_time_ratio", "efficiency_ratio_ci95", "execution_time_ratio_ci95",
+                "commit", "machine"):
         assert key in doc, key
 
 

@@ -55,8 +55,8 @@ def check_tuning(cfg: DictConfig) -> None:
 
 def tune(cfg: DictConfig, method: str, run_seed: Callable[[DictConfig, str, int, str], tuple]) -> dict:
     """The method's tuning: every candidate's score and the one chosen. ``run_seed(cfg, method,
-    seed, candidate)`` trains (or reuses) and evaluates one run (``pnp.studies.table1.run_seed``)."""
-    check_tuning(cfg)
+    seed, candidate)`` trains (or reuses) and evaluates one run (``pnp.studies.table1.run_seed``).
+    ``cfg`` passed :func:`check_tuning` (the caller checks once, before any run)."""
     names = list(cfg.tuning.candidates)
     if len(names) == 1:
         return {"configs_tried": 1, "chosen": AS_BUILT, "chosen_on": "nothing: one configuration", "candidates": {}}

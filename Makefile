@@ -22,9 +22,9 @@ test-all: $(STAMP)
 # Main job: the single-robot pipeline from random weights (recipes/config/experiment/
 # single_pnp_pipeline_bar.yaml over single_pnp_pipeline.yaml: kinematic phases, then MuJoCo),
 # then a checkpoint chosen among the last phase's snapshots on the selection seeds 777 and
-# 778, then 500 paired trials of it on the reporting seed (docs/guide/evaluation.md) into runs/main (results/ holds only quoted
-# figures). Ctrl-C checkpoints; re-running resumes. SEED=k trains with seed k (else the
-# schema's); the seeds of one commit: recipes/seed_study.py.
+# 778, then 500 paired trials of it on the reporting seed (docs/guide/evaluation.md) into
+# runs/main (results/ holds only quoted figures). Ctrl-C checkpoints; re-running resumes.
+# SEED=k trains with seed k (else the schema's); the seeds of one commit: recipes/seed_study.py.
 RUN ?= runs/main
 train: $(STAMP)
 	WANDB_MODE=offline $(PY) recipes/train.py experiment=single_pnp_pipeline_bar out_dir=$(RUN) $(if $(SEED),seed=$(SEED)) $(ARGS)
